@@ -1,0 +1,210 @@
+//! Camera poses, their distributions, look-at and ray generation (the release's pi-GAN
+//! conventions: camera on the unit sphere looking at the origin, OpenGL axes).
+use crate::config::{CameraConfig, PoseDistribution};
+use std::f64::consts::PI;
+use tch::{Device, Kind, Tensor};
+
+/// Camera poses: pitch φ (polar angle from +y) and yaw θ, each `(B, 1)`, radians.
+#[derive(Debug)]
+pub struct Poses {
+    pub pitch: Tensor,
+    pub yaw: Tensor,
+}
+
+impl Poses {
+    /// Explicit poses `(pitch, yaw)` in radians; no clamping (poles are handled by the
+    /// look-at construction).
+    pub fn from_angles(angles: &[(f64, f64)], kind: Kind, device: Device) -> Self {
+        let p: Vec<f64> = angles.iter().map(|a| a.0).collect();
+        let y: Vec<f64> = angles.iter().map(|a| a.1).collect();
+        let col = |v: &[f64]| Tensor::from_slice(v).view([-1, 1]).to_kind(kind).to_device(device);
+        Self { pitch: col(&p), yaw: col(&y) }
+    }
+
+    /// Draws `n` poses from the configured distribution (the release's sampling path,
+    /// which clamps φ to [1e-5, π − 1e-5]).
+    pub fn sample(cam: &CameraConfig, n: i64, kind: Kind, device: Device) -> Self {
+        let opts = (kind, device);
+        let sym = || (Tensor::rand([n, 1], opts) - 0.5) * 2.0;
+        let (yaw, pitch) = match cam.distribution {
+            PoseDistribution::Uniform => {
+                let yaw = sym() * cam.h_std + cam.h_mean;
+                (yaw, sym() * cam.v_std + cam.v_mean)
+            }
+            PoseDistribution::Normal => {
+                let yaw = Tensor::randn([n, 1], opts) * cam.h_std + cam.h_mean;
+                (yaw, Tensor::randn([n, 1], opts) * cam.v_std + cam.v_mean)
+            }
+            PoseDistribution::SphericalUniform => {
+                let yaw = sym() * cam.h_std + cam.h_mean;
+                let v = (sym() * (cam.v_std / PI) + cam.v_mean / PI).clamp(1e-5, 1.0 - 1e-5);
+                (yaw, (v * -2.0 + 1.0).acos())
+            }
+            PoseDistribution::Fixed => (
+                Tensor::full([n, 1], cam.h_mean, opts),
+                Tensor::full([n, 1], cam.v_mean, opts),
+            ),
+        };
+        Self { pitch: pitch.clamp(1e-5, PI - 1e-5), yaw }
+    }
+
+    /// `(B, 2)` = `[pitch, yaw]`, the target of the discriminator's pose head.
+    pub fn stacked(&self) -> Tensor {
+        Tensor::cat(&[&self.pitch, &self.yaw], 1)
+    }
+
+    pub fn len(&self) -> i64 {
+        self.pitch.size()[0]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn narrow(&self, start: i64, len: i64) -> Self {
+        Self { pitch: self.pitch.narrow(0, start, len), yaw: self.yaw.narrow(0, start, len) }
+    }
+}
+
+/// Camera centres on the sphere of `radius`: `(B, 3)` = r·(sin φ cos θ, cos φ, sin φ sin θ).
+pub fn camera_origins(poses: &Poses, radius: f64) -> Tensor {
+    let (p, y) = (&poses.pitch, &poses.yaw);
+    Tensor::cat(&[p.sin() * y.cos(), p.cos(), p.sin() * y.sin()], 1) * radius
+}
+
+/// Camera-to-world rotations `(B, 3, 3)` with columns (right, up, back) = (−left, up, −forward).
+///
+/// The release builds left = normalize(up₀ × forward), which is 0/0 at the poles. For a
+/// camera on the sphere that cross product is sin φ·(−sin θ, 0, cos θ), so we use that
+/// direction exactly (sign of sin φ, +1 at the poles, i.e. the limit from inside):
+/// identical away from the poles, finite and continuous at them.
+pub fn cam2world_rotation(poses: &Poses) -> Tensor {
+    let origin = camera_origins(poses, 1.0);
+    let forward = normalize(&(-&origin));
+    let sign = poses.pitch.sin().sign().where_self(&poses.pitch.sin().ne(0.0), &poses.pitch.ones_like());
+    let left = Tensor::cat(&[-poses.yaw.sin(), poses.yaw.zeros_like(), poses.yaw.cos()], 1) * sign;
+    let up = normalize(&forward.linalg_cross(&left, -1));
+    Tensor::stack(&[-left, up, -forward], 2)
+}
+
+/// Unit vectors along the last axis; a zero vector stays zero (no 0/0).
+pub fn normalize(v: &Tensor) -> Tensor {
+    v / v.square().sum_dim_intlist(-1, true, v.kind()).sqrt().clamp_min(1e-12)
+}
+
+/// Camera-space unit ray directions for a `res × res` image: `(res·res, 3)`, row-major
+/// (index = row·res + col). Pixel centres span x ∈ [−1, 1] left→right and y ∈ [1, −1]
+/// top→bottom, so the edge pixel centres lie on the field-of-view boundary.
+pub fn pixel_directions(res: i64, fov_deg: f64, kind: Kind, device: Device) -> Tensor {
+    let t = (fov_deg.to_radians() / 2.0).tan();
+    let xs = Tensor::linspace(-1.0, 1.0, res, (kind, device));
+    let ys = Tensor::linspace(1.0, -1.0, res, (kind, device));
+    let x = xs.view([1, res]).expand([res, res], false).reshape([-1]);
+    let y = ys.view([res, 1]).expand([res, res], false).reshape([-1]);
+    // (x, y, −1/t) scaled by t: the same direction, and finite as t → 0.
+    let d = Tensor::stack(&[x * t, y * t, Tensor::full([res * res], -1.0, (kind, device))], 1);
+    normalize(&d)
+}
+
+/// World-space rays: origins and unit directions, both `(B, R, 3)`.
+#[derive(Debug)]
+pub struct Rays {
+    pub origins: Tensor,
+    pub dirs: Tensor,
+}
+
+impl Rays {
+    /// Rays of `res × res` images seen from `poses` on the unit sphere.
+    pub fn from_poses(poses: &Poses, res: i64, fov_deg: f64) -> Self {
+        let (kind, device) = (poses.pitch.kind(), poses.pitch.device());
+        let dirs_cam = pixel_directions(res, fov_deg, kind, device);
+        Self::from_rotation(&cam2world_rotation(poses), &camera_origins(poses, 1.0), &dirs_cam)
+    }
+
+    /// Rays from rotations `(B, 3, 3)`, centres `(B, 3)` and camera-space directions `(R, 3)`.
+    pub fn from_rotation(rot: &Tensor, origin: &Tensor, dirs_cam: &Tensor) -> Self {
+        let r = dirs_cam.size()[0];
+        let dirs = dirs_cam.matmul(&rot.transpose(1, 2)); // (B, R, 3)
+        let origins = origin.unsqueeze(1).expand([-1, r, 3], false);
+        Self { origins, dirs }
+    }
+
+    /// Rays from camera-to-world matrices `(B, 4, 4)` (user-given cameras).
+    pub fn from_cam2world(c2w: &Tensor, dirs_cam: &Tensor) -> Self {
+        let rot = c2w.narrow(1, 0, 3).narrow(2, 0, 3);
+        let origin = c2w.narrow(1, 0, 3).select(2, 3);
+        Self::from_rotation(&rot, &origin, dirs_cam)
+    }
+
+    /// Rays `[start, start+len)` of every image.
+    pub fn narrow(&self, start: i64, len: i64) -> Self {
+        Self { origins: self.origins.narrow(1, start, len), dirs: self.dirs.narrow(1, start, len) }
+    }
+
+    /// Images `[start, start+len)`.
+    pub fn narrow_batch(&self, start: i64, len: i64) -> Self {
+        Self { origins: self.origins.narrow(0, start, len), dirs: self.dirs.narrow(0, start, len) }
+    }
+
+    pub fn num_rays(&self) -> i64 {
+        self.dirs.size()[1]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn max_abs(t: &Tensor) -> f64 {
+        f64::try_from(t.abs().max()).unwrap()
+    }
+
+    #[test]
+    fn centre_ray_points_at_the_origin() {
+        let poses = Poses::from_angles(&[(1.0, 0.3), (0.5, -2.0)], Kind::Double, Device::Cpu);
+        let rays = Rays::from_poses(&poses, 5, 50.0);
+        let centre = rays.dirs.select(1, 12); // row 2, col 2
+        let want = -camera_origins(&poses, 1.0);
+        assert!(max_abs(&(centre - want)) < 1e-12);
+    }
+
+    #[test]
+    fn rotation_is_orthonormal_and_right_handed_everywhere() {
+        let angles: Vec<(f64, f64)> = [0.0, 1e-9, 0.3, PI / 2.0, PI - 1e-9, PI]
+            .iter()
+            .flat_map(|&p| [-PI, -1.0, 0.0, 2.5, PI].map(move |y| (p, y)))
+            .collect();
+        let poses = Poses::from_angles(&angles, Kind::Double, Device::Cpu);
+        let r = cam2world_rotation(&poses);
+        let eye = Tensor::eye(3, (Kind::Double, Device::Cpu));
+        assert!(max_abs(&(r.transpose(1, 2).matmul(&r) - eye)) < 1e-12);
+        assert!(max_abs(&(Tensor::linalg_det(&r) - 1.0)) < 1e-12);
+        // Continuity at the poles: the pose at φ = 0 equals the pose at φ = 1e-9.
+        let rr = r.view([6, 5, 3, 3]);
+        assert!(max_abs(&(rr.get(0) - rr.get(1))) < 1e-8);
+        assert!(max_abs(&(rr.get(5) - rr.get(4))) < 1e-8);
+    }
+
+    #[test]
+    fn tiny_and_wide_fields_of_view_stay_finite() {
+        for fov in [1e-6, 1.0, 179.999] {
+            let d = pixel_directions(4, fov, Kind::Float, Device::Cpu);
+            assert!(bool::try_from(d.isfinite().all()).unwrap(), "fov {fov}");
+            let n = d.square().sum_dim_intlist(-1, false, Kind::Float).sqrt();
+            assert!(max_abs(&(n - 1.0)) < 1e-6);
+        }
+    }
+
+    #[test]
+    fn sampled_pitch_stays_inside_the_range() {
+        tch::manual_seed(0);
+        let cam = CameraConfig::chair();
+        let p = Poses::sample(&cam, 1000, Kind::Float, Device::Cpu);
+        let (lo, hi) = (f64::try_from(p.pitch.min()).unwrap(), f64::try_from(p.pitch.max()).unwrap());
+        assert!(lo >= cam.v_mean - cam.v_std - 1e-6 && hi <= cam.v_mean + cam.v_std + 1e-6);
+        let carla = CameraConfig::carla();
+        let p = Poses::sample(&carla, 1000, Kind::Float, Device::Cpu);
+        let hi = f64::try_from(p.pitch.max()).unwrap();
+        assert!(hi < PI / 2.0 && hi > 1.4, "{hi}");
+    }
+}

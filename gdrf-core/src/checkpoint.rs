@@ -1,0 +1,247 @@
+//! Checkpoints: safetensors files with named tensors and a JSON header (metadata key
+//! `gdrf`) that describes the model. Writes are atomic; loading is strict and every
+//! mismatch names the tensor and both shapes.
+use crate::config::{CameraConfig, GeneratorConfig};
+use crate::field::generator::Generator;
+use crate::{Error, Result};
+use safetensors::tensor::{Dtype, TensorView};
+use safetensors::SafeTensors;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use tch::{nn, Device, Kind, Tensor};
+
+/// Metadata key holding the JSON header.
+pub const HEADER_KEY: &str = "gdrf";
+pub const FORMAT_VERSION: u32 = 1;
+
+/// The JSON header of a generator checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Header {
+    pub format_version: u32,
+    /// What the tensors are: `"generator"`.
+    pub model: String,
+    pub generator: GeneratorConfig,
+    /// The camera the model was trained with, when known.
+    #[serde(default)]
+    pub camera: Option<CameraConfig>,
+    /// Free-form provenance (training step, converter, …).
+    #[serde(default)]
+    pub info: BTreeMap<String, String>,
+}
+
+impl Header {
+    pub fn generator(generator: GeneratorConfig, camera: Option<CameraConfig>) -> Self {
+        Self { format_version: FORMAT_VERSION, model: "generator".into(), generator, camera, info: BTreeMap::new() }
+    }
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
+    move |source| Error::Io { path: path.to_path_buf(), source }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same folder, flushed to
+/// disk, then renamed over the target. A crash leaves either the old or the new file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let name = path.file_name().ok_or_else(|| Error::Invalid(format!("{}: not a file path", path.display())))?;
+    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
+        f.write_all(bytes).map_err(io_err(&tmp))?;
+        f.sync_all().map_err(io_err(&tmp))?;
+        std::fs::rename(&tmp, path).map_err(io_err(path))?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+fn dtype_of(kind: Kind) -> Result<Dtype> {
+    match kind {
+        Kind::Float => Ok(Dtype::F32),
+        Kind::Double => Ok(Dtype::F64),
+        Kind::Half => Ok(Dtype::F16),
+        Kind::BFloat16 => Ok(Dtype::BF16),
+        Kind::Int64 => Ok(Dtype::I64),
+        k => Err(Error::Invalid(format!("cannot store tensors of kind {k:?}"))),
+    }
+}
+
+/// Serialises named tensors and the header to safetensors bytes.
+pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>> {
+    let mut data = Vec::with_capacity(tensors.len());
+    for (name, t) in tensors {
+        let t = t.detach().to_device(Device::Cpu).contiguous();
+        let mut buf = vec![0u8; t.numel() * t.kind().elt_size_in_bytes()];
+        t.f_copy_data_u8(&mut buf, t.numel())?;
+        let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
+        data.push((name.clone(), dtype_of(t.kind())?, shape, buf));
+    }
+    let views = data
+        .iter()
+        .map(|(n, d, s, b)| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|e| Error::Invalid(format!("tensor layout: {e}")))?;
+    let json = serde_json::to_string(header).map_err(|e| Error::Invalid(e.to_string()))?;
+    let meta = HashMap::from([(HEADER_KEY.to_string(), json)]);
+    safetensors::serialize(views, Some(meta)).map_err(|e| Error::Invalid(format!("serialise: {e}")))
+}
+
+/// Saves named tensors with a header, atomically.
+pub fn save(path: &Path, tensors: &[(String, Tensor)], header: &Header) -> Result<()> {
+    write_atomic(path, &to_bytes(tensors, header)?)
+}
+
+/// A checkpoint read from disk: header and CPU tensors by name.
+#[derive(Debug)]
+pub struct Checkpoint {
+    pub path: PathBuf,
+    pub header: Header,
+    pub tensors: BTreeMap<String, Tensor>,
+}
+
+/// Reads and validates a checkpoint file (layout, header); tensors land on the CPU.
+pub fn load(path: &Path) -> Result<Checkpoint> {
+    let bytes = std::fs::read(path).map_err(io_err(path))?;
+    let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| {
+        not(match e {
+            safetensors::SafeTensorError::MetadataIncompleteBuffer
+            | safetensors::SafeTensorError::InvalidOffset(_) => {
+                format!("the file is truncated or corrupt ({e}); it holds {} bytes", bytes.len())
+            }
+            _ => format!("not a safetensors file ({e})"),
+        })
+    })?;
+    let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| not(e.to_string()))?;
+    let json = meta
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(HEADER_KEY))
+        .ok_or_else(|| not(format!("a safetensors file without the '{HEADER_KEY}' header")))?;
+    let header: Header = serde_json::from_str(json).map_err(|e| not(format!("bad header: {e}")))?;
+    if header.format_version > FORMAT_VERSION {
+        return Err(not(format!(
+            "format version {} is newer than this program's {FORMAT_VERSION}",
+            header.format_version
+        )));
+    }
+    let mut tensors = BTreeMap::new();
+    for (name, view) in st.tensors() {
+        let kind = match view.dtype() {
+            Dtype::F32 => Kind::Float,
+            Dtype::F64 => Kind::Double,
+            Dtype::F16 => Kind::Half,
+            Dtype::BF16 => Kind::BFloat16,
+            Dtype::I64 => Kind::Int64,
+            d => return Err(Error::DType { path: path.to_path_buf(), name, found: format!("{d:?}") }),
+        };
+        let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
+        tensors.insert(name, Tensor::from_data_size(view.data(), &shape, kind));
+    }
+    Ok(Checkpoint { path: path.to_path_buf(), header, tensors })
+}
+
+impl Checkpoint {
+    /// Copies the tensors into `vs`. Every variable must be present with its exact shape,
+    /// and the file may hold nothing else.
+    pub fn load_into(&self, vs: &mut nn::VarStore) -> Result<()> {
+        let path = &self.path;
+        let shape = |t: &Tensor| t.size().iter().map(|&d| d as usize).collect::<Vec<_>>();
+        let vars = vs.variables();
+        for (name, t) in &self.tensors {
+            if !vars.contains_key(name) {
+                return Err(Error::UnexpectedTensor { path: path.clone(), name: name.clone(), found: shape(t) });
+            }
+        }
+        let mut names: Vec<_> = vars.keys().cloned().collect();
+        names.sort();
+        tch::no_grad(|| {
+            for name in names {
+                let mut var = vars[&name].shallow_clone();
+                let src = self.tensors.get(&name).ok_or_else(|| Error::MissingTensor {
+                    path: path.clone(),
+                    name: name.clone(),
+                    expected: shape(&var),
+                })?;
+                if src.size() != var.size() {
+                    return Err(Error::ShapeMismatch {
+                        path: path.clone(),
+                        name: name.clone(),
+                        found: shape(src),
+                        expected: shape(&var),
+                    });
+                }
+                var.copy_(&src.to_kind(var.kind()).to_device(var.device()));
+            }
+            Ok(())
+        })
+    }
+}
+
+/// A generator with its parameters.
+pub struct LoadedGenerator {
+    pub vs: nn::VarStore,
+    pub generator: Generator,
+    pub header: Header,
+}
+
+/// Saves a generator's parameters and configuration.
+pub fn save_generator(path: &Path, vs: &nn::VarStore, header: &Header) -> Result<()> {
+    let mut tensors: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    save(path, &tensors, header)
+}
+
+/// Loads a generator checkpoint onto `device` in `kind` (Float or Double).
+pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedGenerator> {
+    let ckpt = load(path)?;
+    if ckpt.header.model != "generator" {
+        return Err(Error::NotACheckpoint {
+            path: path.to_path_buf(),
+            reason: format!("it holds a '{}', not a generator", ckpt.header.model),
+        });
+    }
+    let mut vs = nn::VarStore::new(device);
+    let generator = Generator::new(&vs.root(), &ckpt.header.generator)?;
+    if kind == Kind::Double {
+        vs.double();
+    }
+    ckpt.load_into(&mut vs)?;
+    Ok(LoadedGenerator { vs, generator, header: ckpt.header })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_is_exact() {
+        let dir = std::env::temp_dir().join(format!("gdrf-ckpt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("g.safetensors");
+        let cfg = GeneratorConfig { hidden_dim: 16, mapping_hidden_dim: 8, latent_dim: 4, ..Default::default() };
+        let vs = nn::VarStore::new(Device::Cpu);
+        let _g = Generator::new(&vs.root(), &cfg).unwrap();
+        save_generator(&path, &vs, &Header::generator(cfg.clone(), Some(CameraConfig::car()))).unwrap();
+        let back = load_generator(&path, Device::Cpu, Kind::Float).unwrap();
+        assert_eq!(back.header.generator, cfg);
+        assert_eq!(back.header.camera, Some(CameraConfig::car()));
+        let a = vs.variables();
+        for (name, t) in back.vs.variables() {
+            assert!(t.equal(&a[&name]), "{name}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

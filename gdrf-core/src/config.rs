@@ -1,0 +1,236 @@
+//! Model, camera and rendering configuration. Defaults are the authors' release values
+//! (CHAIR_128 where a value depends on the dataset).
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+/// Sizes of the generator's networks.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GeneratorConfig {
+    /// Dimension of the latent codes z_s and z_a.
+    pub latent_dim: usize,
+    /// Width of every SIREN / FiLM layer (template and deformation).
+    pub hidden_dim: usize,
+    /// Width of the mapping networks' hidden layers (and of w_s).
+    pub mapping_hidden_dim: usize,
+    /// Plain SIREN layers in the template density trunk T_σ.
+    pub trunk_layers: usize,
+    /// FiLM layers in the colour branch T_c; the view direction enters the last one.
+    pub color_layers: usize,
+    /// FiLM layers in the deformation/correction field Φ.
+    pub deform_layers: usize,
+    /// Scale of the density correction: Δσ = correct_scale · raw.
+    pub correct_scale: f64,
+    /// Scale of the displacement: Δx = deform_scale · raw.
+    pub deform_scale: f64,
+}
+
+impl Default for GeneratorConfig {
+    fn default() -> Self {
+        Self {
+            latent_dim: 256,
+            hidden_dim: 256,
+            mapping_hidden_dim: 256,
+            trunk_layers: 5,
+            color_layers: 4,
+            deform_layers: 4,
+            correct_scale: 100.0,
+            deform_scale: 1.0,
+        }
+    }
+}
+
+impl GeneratorConfig {
+    pub fn validate(&self) -> Result<()> {
+        let positive = [
+            ("latent_dim", self.latent_dim),
+            ("hidden_dim", self.hidden_dim),
+            ("mapping_hidden_dim", self.mapping_hidden_dim),
+            ("trunk_layers", self.trunk_layers),
+            ("deform_layers", self.deform_layers),
+        ];
+        for (key, v) in positive {
+            if v == 0 {
+                return Err(Error::Config(format!("generator.{key} must be at least 1")));
+            }
+        }
+        if self.color_layers < 2 {
+            return Err(Error::Config(format!(
+                "generator.color_layers is {}, expected at least 2 (the view direction enters the last one)",
+                self.color_layers
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// How training poses are drawn (yaw θ from `h_*`, pitch φ from `v_*`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseDistribution {
+    /// θ = h_mean + h_std·U(−1,1); φ = v_mean + v_std·U(−1,1).
+    Uniform,
+    /// θ = h_mean + h_std·N(0,1); φ likewise.
+    Normal,
+    /// Area-uniform on a sphere cap: v = v_mean/π + (v_std/π)·U(−1,1), φ = arccos(1−2v).
+    SphericalUniform,
+    /// Always the mean pose.
+    Fixed,
+}
+
+/// Camera intrinsics, ray range and pose distribution.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraConfig {
+    /// Full field of view in degrees (both axes, square images).
+    pub fov_deg: f64,
+    pub ray_start: f64,
+    pub ray_end: f64,
+    pub distribution: PoseDistribution,
+    pub h_mean: f64,
+    pub h_std: f64,
+    pub v_mean: f64,
+    pub v_std: f64,
+    /// Feed the constant direction (0, 0, −1) to the colour branch.
+    pub lock_view_dependence: bool,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        Self::chair()
+    }
+}
+
+impl CameraConfig {
+    pub fn chair() -> Self {
+        Self {
+            fov_deg: 50.0,
+            ray_start: 0.6,
+            ray_end: 1.4,
+            distribution: PoseDistribution::Uniform,
+            h_mean: 0.0,
+            h_std: std::f64::consts::PI,
+            v_mean: 1.070796,
+            v_std: 0.2618,
+            lock_view_dependence: false,
+        }
+    }
+    pub fn car() -> Self {
+        Self { fov_deg: 30.0, ray_start: 0.75, ray_end: 1.25, v_mean: 1.2217, ..Self::chair() }
+    }
+    pub fn carla() -> Self {
+        Self {
+            fov_deg: 30.0,
+            ray_start: 0.7,
+            ray_end: 1.3,
+            distribution: PoseDistribution::SphericalUniform,
+            h_mean: std::f64::consts::FRAC_PI_2,
+            h_std: std::f64::consts::PI,
+            v_mean: 0.7418,
+            v_std: 0.7418,
+            lock_view_dependence: true,
+        }
+    }
+    pub fn validate(&self) -> Result<()> {
+        if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
+            return Err(Error::Config(format!(
+                "camera.fov_deg is {}, expected a value in (0, 180)",
+                self.fov_deg
+            )));
+        }
+        if !(self.ray_start >= 0.0 && self.ray_end > self.ray_start && self.ray_end.is_finite()) {
+            return Err(Error::Config(format!(
+                "camera ray range [{}, {}] is invalid, expected 0 <= ray_start < ray_end",
+                self.ray_start, self.ray_end
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// How rays are sampled and integrated.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RenderConfig {
+    /// Coarse samples per ray N (the importance pass adds N more).
+    pub num_steps: usize,
+    /// Add N importance samples drawn from the coarse weights.
+    pub hierarchical: bool,
+    /// Stratified jitter of the coarse depths (the release always jitters).
+    pub jitter: bool,
+    /// Composite on white: pixel += 1 − Σw.
+    pub white_back: bool,
+    /// Add the leftover transmittance to the last sample's weight.
+    pub last_back: bool,
+    /// Paint the last sample white before integration (release render/FID scripts).
+    pub force_last_white: bool,
+    /// Length of the last interval.
+    pub delta_final: f64,
+    /// Colour widening ε: c' = c(1 + 2ε) − ε.
+    pub widen_eps: f64,
+    /// Points evaluated at once by the inference renderer (bounds memory).
+    pub chunk_points: usize,
+}
+
+impl Default for RenderConfig {
+    fn default() -> Self {
+        Self {
+            num_steps: 36,
+            hierarchical: true,
+            jitter: true,
+            white_back: true,
+            last_back: false,
+            force_last_white: false,
+            delta_final: 1e10,
+            widen_eps: 1e-3,
+            chunk_points: 1 << 17,
+        }
+    }
+}
+
+impl RenderConfig {
+    pub fn validate(&self) -> Result<()> {
+        if self.num_steps < 3 && self.hierarchical {
+            return Err(Error::Config(format!(
+                "render.num_steps is {}, expected at least 3 with hierarchical sampling",
+                self.num_steps
+            )));
+        }
+        if self.num_steps < 1 {
+            return Err(Error::Config("render.num_steps must be at least 1".into()));
+        }
+        if self.chunk_points == 0 {
+            return Err(Error::Config("render.chunk_points must be at least 1".into()));
+        }
+        Ok(())
+    }
+    /// Samples per ray after merging coarse and fine samples.
+    pub fn samples_per_ray(&self) -> usize {
+        if self.hierarchical {
+            2 * self.num_steps
+        } else {
+            self.num_steps
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_keys_are_rejected_by_name() {
+        let err = toml::from_str::<CameraConfig>("fov = 30.0").unwrap_err().to_string();
+        assert!(err.contains("fov"), "{err}");
+    }
+
+    #[test]
+    fn presets_validate() {
+        for c in [CameraConfig::chair(), CameraConfig::car(), CameraConfig::carla()] {
+            c.validate().unwrap();
+        }
+        GeneratorConfig::default().validate().unwrap();
+        RenderConfig::default().validate().unwrap();
+        assert!(CameraConfig { fov_deg: 180.0, ..CameraConfig::chair() }.validate().is_err());
+    }
+}

@@ -1,0 +1,26 @@
+//! Library errors: each names the file, tensor or key at fault and what was expected.
+use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: not a gdrf checkpoint ({reason})")]
+    NotACheckpoint { path: PathBuf, reason: String },
+    #[error("{path}: tensor '{name}' has shape {found:?}, the model expects {expected:?}")]
+    ShapeMismatch { path: PathBuf, name: String, found: Vec<usize>, expected: Vec<usize> },
+    #[error("{path}: tensor '{name}' is missing (the model expects shape {expected:?})")]
+    MissingTensor { path: PathBuf, name: String, expected: Vec<usize> },
+    #[error("{path}: unexpected tensor '{name}' with shape {found:?} (not part of this model)")]
+    UnexpectedTensor { path: PathBuf, name: String, found: Vec<usize> },
+    #[error("{path}: tensor '{name}' has dtype {found}, expected F32 or F64")]
+    DType { path: PathBuf, name: String, found: String },
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    #[error("invalid argument: {0}")]
+    Invalid(String),
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+}
+
+pub type Result<T> = std::result::Result<T, Error>;

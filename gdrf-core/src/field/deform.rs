@@ -1,0 +1,47 @@
+//! Φ: the deformation + correction field, a FiLM-SIREN driven by the shape modulation.
+use crate::config::GeneratorConfig;
+use crate::nn::film::{Film, FilmLayer};
+use crate::nn::{Linear, WeightInit};
+use tch::{nn, Tensor};
+
+#[derive(Debug)]
+pub struct DeformField {
+    pub film: Vec<FilmLayer>,
+    /// 256 → 4: Δx (3) and raw Δσ (1). Zero weight at init, so Δx starts constant and
+    /// ∂Δx/∂x is exactly zero.
+    pub head: Linear,
+    hidden: usize,
+    correct_scale: f64,
+    deform_scale: f64,
+}
+
+impl DeformField {
+    pub fn new(vs: nn::Path, cfg: &GeneratorConfig) -> Self {
+        let h = cfg.hidden_dim;
+        let film = (0..cfg.deform_layers)
+            .map(|i| {
+                let (inp, init) =
+                    if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(25.0)) };
+                FilmLayer::new(vs.clone() / "film" / i, inp, h, init)
+            })
+            .collect();
+        let head = Linear::new(vs / "head", h, 4, WeightInit::Zeros);
+        Self { film, head, hidden: h, correct_scale: cfg.correct_scale, deform_scale: cfg.deform_scale }
+    }
+
+    /// `x: (B, P, 3)` target-space points → `(Δx: (B, P, 3), Δσ: (B, P, 1))`, Δσ already
+    /// multiplied by the correction scale.
+    pub fn forward(&self, x: &Tensor, shape: &Film) -> (Tensor, Tensor) {
+        let mut h = x.shallow_clone();
+        for (i, layer) in self.film.iter().enumerate() {
+            let (g, b) = shape.layer(i, self.hidden);
+            h = layer.forward(&h, &g, &b);
+        }
+        let out = self.head.forward(&h);
+        let mut dx = out.narrow(-1, 0, 3);
+        if self.deform_scale != 1.0 {
+            dx = dx * self.deform_scale;
+        }
+        (dx, out.narrow(-1, 3, 1) * self.correct_scale)
+    }
+}

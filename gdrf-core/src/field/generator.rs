@@ -1,0 +1,203 @@
+//! The composed generator: codes or features → modulations → density first, colour second.
+use super::deform::DeformField;
+use super::template::TemplateField;
+use crate::config::GeneratorConfig;
+use crate::nn::film::Film;
+use crate::nn::mapping::MappingNetwork;
+use crate::Result;
+use tch::{nn, Device, Kind, Tensor};
+
+/// The modulations that drive one batch: shape (Φ) and appearance (T_c).
+#[derive(Debug)]
+pub struct Latents {
+    pub shape: Film,
+    pub appearance: Film,
+}
+
+impl Latents {
+    pub fn narrow(&self, start: i64, len: i64) -> Self {
+        Self { shape: self.shape.narrow(start, len), appearance: self.appearance.narrow(start, len) }
+    }
+    pub fn batch_size(&self) -> i64 {
+        self.shape.batch_size()
+    }
+}
+
+/// Truncation toward the mean raw mapping output: raw ← mean + ψ·(raw − mean).
+#[derive(Debug)]
+pub struct Truncation {
+    pub psi: f64,
+    /// `(1, 2·L_s·H)` mean raw output of the shape mapping network.
+    pub shape_mean: Tensor,
+    /// `(1, 2·L_c·H)` mean raw output of the appearance mapping network.
+    pub appearance_mean: Tensor,
+}
+
+/// Ablations of the inference renderer (release options `no_deformation`, `no_correct`).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FieldOptions {
+    /// Evaluate the template at x instead of x + Δx.
+    pub no_deformation: bool,
+    /// Drop the density correction Δσ.
+    pub no_correction: bool,
+}
+
+/// The result of a density query at target-space points `x: (B, P, 3)`.
+#[derive(Debug)]
+pub struct Density {
+    /// Raw final density σ_t(x + Δx) + Δσ: `(B, P, 1)`.
+    pub sigma: Tensor,
+    /// Template trunk feature f_t at x + Δx: `(B, P, H)`, input of the colour query.
+    pub feature: Tensor,
+    /// Template density σ_t: `(B, P, 1)`.
+    pub sigma_t: Tensor,
+    /// Template-space points x + Δx: `(B, P, 3)`.
+    pub x_template: Tensor,
+    pub dx: Tensor,
+    pub dsigma: Tensor,
+}
+
+#[derive(Debug)]
+pub struct Generator {
+    pub cfg: GeneratorConfig,
+    pub shape_mapping: MappingNetwork,
+    pub appearance_mapping: MappingNetwork,
+    pub deform: DeformField,
+    pub template: TemplateField,
+}
+
+impl Generator {
+    /// Creates the networks under `vs` with the release's initialisation.
+    pub fn new(vs: &nn::Path, cfg: &GeneratorConfig) -> Result<Self> {
+        cfg.validate()?;
+        let (z, h, m) = (cfg.latent_dim, cfg.hidden_dim, cfg.mapping_hidden_dim);
+        Ok(Self {
+            cfg: cfg.clone(),
+            template: TemplateField::new(vs / "template", cfg),
+            appearance_mapping: MappingNetwork::new(vs / "appearance_mapping", z, m, 2 * cfg.color_layers * h),
+            deform: DeformField::new(vs / "deform", cfg),
+            shape_mapping: MappingNetwork::new(vs / "shape_mapping", z, m, 2 * cfg.deform_layers * h),
+        })
+    }
+
+    /// Mean raw mapping outputs over `n` codes drawn from `seed`, for truncation ψ.
+    pub fn truncation(&self, psi: f64, n: i64, seed: i64) -> Truncation {
+        let w = &self.shape_mapping.layers[0].weight;
+        let (kind, device) = (w.kind(), w.device());
+        Truncation {
+            psi,
+            shape_mean: self.shape_mapping.mean_output(n, seed, kind, device),
+            appearance_mean: self.appearance_mapping.mean_output(n, seed.wrapping_add(1), kind, device),
+        }
+    }
+
+    /// w_s: `(B, mapping_hidden)` for shape codes `z_s: (B, latent)`.
+    pub fn shape_w(&self, z_s: &Tensor) -> Tensor {
+        self.shape_mapping.features(z_s)
+    }
+
+    /// Shape modulation (γ_s, β_s) from w_s `(B, mapping_hidden)`.
+    pub fn shape_from_w(&self, w_s: &Tensor, trunc: Option<&Truncation>) -> Film {
+        let raw = self.shape_mapping.head(w_s);
+        Film::from_raw(&truncate(raw, trunc.map(|t| (t.psi, &t.shape_mean))))
+    }
+
+    /// Shape modulation from z_s `(B, latent)`.
+    pub fn shape_from_z(&self, z_s: &Tensor, trunc: Option<&Truncation>) -> Film {
+        self.shape_from_w(&self.shape_w(z_s), trunc)
+    }
+
+    /// Appearance modulation (γ_a, β_a) from z_a `(B, latent)`.
+    pub fn appearance_from_z(&self, z_a: &Tensor, trunc: Option<&Truncation>) -> Film {
+        let raw = self.appearance_mapping.forward(z_a);
+        Film::from_raw(&truncate(raw, trunc.map(|t| (t.psi, &t.appearance_mean))))
+    }
+
+    /// Both modulations from codes. The release feeds one code to both (z_s = z_a).
+    pub fn latents(&self, z_s: &Tensor, z_a: &Tensor, trunc: Option<&Truncation>) -> Latents {
+        Latents { shape: self.shape_from_z(z_s, trunc), appearance: self.appearance_from_z(z_a, trunc) }
+    }
+
+    /// Density-only query (the shape side): `x: (B, P, 3)`.
+    pub fn density(&self, x: &Tensor, shape: &Film, opts: FieldOptions) -> Density {
+        let (dx, dsigma) = self.deform.forward(x, shape);
+        let x_template = if opts.no_deformation { x.shallow_clone() } else { x + &dx };
+        let (feature, sigma_t) = self.template.density(&x_template);
+        let sigma = if opts.no_correction { sigma_t.shallow_clone() } else { &sigma_t + &dsigma };
+        Density { sigma, feature, sigma_t, x_template, dx, dsigma }
+    }
+
+    /// Colour query (the appearance side): `feature: (B, P, H)`, `dirs: (B, P, 3)` → rgb
+    /// `(B, P, 3)` in (0, 1).
+    pub fn color(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
+        self.template.color(feature, dirs, appearance)
+    }
+
+    /// Full query: `(rgb: (B, P, 3), σ: (B, P, 1))`.
+    pub fn forward(&self, x: &Tensor, dirs: &Tensor, latents: &Latents) -> (Tensor, Tensor) {
+        let d = self.density(x, &latents.shape, FieldOptions::default());
+        (self.color(&d.feature, dirs, &latents.appearance), d.sigma)
+    }
+
+    /// Dtype and device of the parameters.
+    pub fn kind_device(&self) -> (Kind, Device) {
+        let w = &self.shape_mapping.layers[0].weight;
+        (w.kind(), w.device())
+    }
+}
+
+fn truncate(raw: Tensor, t: Option<(f64, &Tensor)>) -> Tensor {
+    match t {
+        Some((psi, mean)) if psi != 1.0 => mean + (raw - mean) * psi,
+        _ => raw,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn count(vs: &nn::VarStore) -> i64 {
+        vs.trainable_variables().iter().map(|t| t.numel() as i64).sum()
+    }
+
+    #[test]
+    fn parameter_counts_match_the_release() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = Generator::new(&vs.root(), &GeneratorConfig::default()).unwrap();
+        assert_eq!(count(&vs), 2_176_008);
+        assert_eq!(vs.variables().len(), 48);
+        let _ = g;
+    }
+
+    #[test]
+    fn initial_deformation_is_constant_and_jacobian_zero() {
+        tch::manual_seed(1);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = Generator::new(&vs.root(), &GeneratorConfig::default()).unwrap();
+        let z = Tensor::randn([2, 256], (Kind::Float, Device::Cpu));
+        let shape = g.shape_from_z(&z, None);
+        let x = (Tensor::rand([2, 50, 3], (Kind::Float, Device::Cpu)) - 0.5).set_requires_grad(true);
+        let (dx, dsigma) = g.deform.forward(&x, &shape);
+        // Δx equals the head bias everywhere; Δσ = 100 · bias.
+        let bias = g.deform.head.bias.detach();
+        let want_dx = bias.narrow(0, 0, 3).view([1, 1, 3]).expand_as(&dx);
+        assert_eq!(f64::try_from((&dx - want_dx).abs().max()).unwrap(), 0.0);
+        let want_ds = bias.narrow(0, 3, 1) * 100.0;
+        assert!(f64::try_from((&dsigma - want_ds).abs().max()).unwrap() < 1e-5);
+        let grad = Tensor::run_backward(&[dx.sum(Kind::Float)], &[&x], false, false);
+        assert_eq!(f64::try_from(grad[0].abs().max()).unwrap(), 0.0);
+    }
+
+    #[test]
+    fn truncation_zero_gives_the_mean_modulation() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = Generator::new(&vs.root(), &GeneratorConfig::default()).unwrap();
+        let t = g.truncation(0.0, 1000, 3);
+        let z = Tensor::randn([3, 256], (Kind::Float, Device::Cpu));
+        let a = g.appearance_from_z(&z, Some(&t));
+        let m = Film::from_raw(&t.appearance_mean);
+        let d = (a.gamma - m.gamma).abs().max();
+        assert!(f64::try_from(d).unwrap() < 1e-4);
+    }
+}

@@ -1,0 +1,68 @@
+//! T: the template radiance field shared by every instance.
+//!
+//! The density trunk T_σ is unconditioned (plain SIREN layers): density depends only on
+//! where a point lands in template space. The colour branch T_c is FiLM-modulated by the
+//! appearance code and reads the trunk feature f_t; the view direction enters only the
+//! last colour layer ("deferred direction").
+use crate::config::GeneratorConfig;
+use crate::nn::film::{Film, FilmLayer};
+use crate::nn::siren::SineLayer;
+use crate::nn::{Linear, WeightInit};
+use tch::{nn, Tensor};
+
+#[derive(Debug)]
+pub struct TemplateField {
+    pub trunk: Vec<SineLayer>,
+    pub sigma_head: Linear,
+    pub color: Vec<FilmLayer>,
+    pub rgb_head: Linear,
+    hidden: usize,
+}
+
+impl TemplateField {
+    pub fn new(vs: nn::Path, cfg: &GeneratorConfig) -> Self {
+        let h = cfg.hidden_dim;
+        let trunk = (0..cfg.trunk_layers)
+            .map(|i| {
+                let (inp, init) =
+                    if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(30.0)) };
+                SineLayer::new(vs.clone() / "trunk" / i, inp, h, init)
+            })
+            .collect();
+        let sigma_head = Linear::new(vs.clone() / "sigma_head", h, 1, WeightInit::Frequency(30.0));
+        let last = cfg.color_layers - 1;
+        let color = (0..cfg.color_layers)
+            .map(|i| {
+                // The release gives colour layer 0 the first-layer rule U(±1/fan_in) although
+                // its input is the 256-d feature; the direction is prepended to the last layer.
+                let init = if i == 0 { WeightInit::FirstLayer } else { WeightInit::Frequency(25.0) };
+                let inp = if i == last { h + 3 } else { h };
+                FilmLayer::new(vs.clone() / "color" / i, inp, h, init)
+            })
+            .collect();
+        let rgb_head = Linear::new(vs / "rgb_head", h, 3, WeightInit::Frequency(25.0));
+        Self { trunk, sigma_head, color, rgb_head, hidden: h }
+    }
+
+    /// Density query. `x_t: (B, P, 3)` template-space points → `(f_t: (B, P, H),
+    /// σ_t: (B, P, 1))`, σ_t raw (softplus is applied when integrating).
+    pub fn density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
+        let f = self.trunk.iter().fold(x_t.shallow_clone(), |h, l| l.forward(&h));
+        let sigma = self.sigma_head.forward(&f);
+        (f, sigma)
+    }
+
+    /// Colour query. `f_t: (B, P, H)`, `dirs: (B, P, 3)` → rgb `(B, P, 3)` in (0, 1).
+    pub fn color(&self, f_t: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
+        let last = self.color.len() - 1;
+        let mut h = f_t.shallow_clone();
+        for (i, layer) in self.color.iter().enumerate() {
+            if i == last {
+                h = Tensor::cat(&[dirs, &h], -1);
+            }
+            let (g, b) = appearance.layer(i, self.hidden);
+            h = layer.forward(&h, &g, &b);
+        }
+        self.rgb_head.forward(&h).sigmoid()
+    }
+}

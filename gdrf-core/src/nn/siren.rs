@@ -1,0 +1,22 @@
+//! The plain SIREN layer of the template density trunk.
+use super::{Linear, WeightInit};
+use tch::{nn, Tensor};
+
+/// `sin(30·(W x + b))`, unmodulated.
+#[derive(Debug)]
+pub struct SineLayer {
+    pub linear: Linear,
+}
+
+impl SineLayer {
+    pub const OMEGA: f64 = 30.0;
+
+    pub fn new(vs: nn::Path, in_dim: usize, out_dim: usize, init: WeightInit) -> Self {
+        Self { linear: Linear::new(vs, in_dim, out_dim, init) }
+    }
+
+    /// `x: (…, in)` → `(…, out)`.
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        (self.linear.forward(x) * Self::OMEGA).sin()
+    }
+}

@@ -1,0 +1,8 @@
+//! Rendering: samplers place depths on rays, composite integrates along them, the
+//! renderer ties field queries, sampling and integration together.
+pub mod composite;
+pub mod renderer;
+pub mod samplers;
+
+pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
+pub use renderer::{Image, Noise, RenderedRays, Renderer};

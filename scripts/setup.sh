@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Idempotent project set-up: a project-local Python environment with torch==2.11.0
+# (whose libtorch the Rust crates link against) and the packages the reference
+# scripts need, plus .cargo/config.toml so that plain `cargo build|test|run` work.
+# Safe to re-run; it only does what is missing.
+set -euo pipefail
+
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="$root/.venv"
+want_torch="2.11.0"
+
+die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
+say() { printf 'setup: %s\n' "$*" >&2; }
+
+python="${PYTHON:-python3}"
+command -v "$python" >/dev/null 2>&1 || die "'$python' not found. Install Python 3.10 or newer (Debian/Ubuntu: apt-get install python3 python3-venv), or point PYTHON at an interpreter."
+"$python" - <<'PY' || die "Python 3.10 or newer is required (torch $want_torch has no wheel for $("$python" --version 2>&1))."
+import sys
+sys.exit(0 if sys.version_info >= (3, 10) else 1)
+PY
+
+if [ ! -x "$venv/bin/python" ]; then
+  say "creating the Python environment in .venv"
+  "$python" -m venv "$venv" || die "could not create a virtual environment with '$python -m venv'. On Debian/Ubuntu install python3-venv."
+fi
+
+have_torch="$("$venv/bin/python" -c 'import torch; print(torch.__version__.split("+")[0])' 2>/dev/null || true)"
+if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors' >/dev/null 2>&1; then
+  say "installing torch==$want_torch, numpy, safetensors from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
+  "$venv/bin/python" -m pip install --quiet --upgrade pip >/dev/null 2>&1 || true
+  "$venv/bin/python" -m pip install --quiet -r "$root/scripts/requirements.txt" \
+    || die "pip could not install $root/scripts/requirements.txt. Check the network connection to PyPI and free disk space (about 5 GB), then re-run scripts/setup.sh."
+fi
+
+have_torch="$("$venv/bin/python" -c 'import torch; print(torch.__version__)' 2>/dev/null)" \
+  || die "torch does not import in .venv. Remove .venv and re-run scripts/setup.sh."
+case "$have_torch" in
+  "$want_torch"|"$want_torch"+*) ;;
+  *) die "torch $have_torch is installed in .venv but gdrf needs exactly $want_torch (tch 0.24 links against it). Run: .venv/bin/pip install torch==$want_torch" ;;
+esac
+
+torch_lib="$("$venv/bin/python" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"
+[ -f "$torch_lib/libtorch_cpu.so" ] || die "libtorch_cpu.so not found in $torch_lib; the torch wheel looks incomplete. Remove .venv and re-run scripts/setup.sh."
+
+# tch's LIBTORCH_USE_PYTORCH mode asks `python` (when VIRTUAL_ENV is set) for the
+# libtorch paths, so the build sees the project's interpreter first on PATH.
+mkdir -p "$root/.cargo"
+config="$root/.cargo/config.toml"
+tmp="$config.tmp.$$"
+cat >"$tmp" <<TOML
+# Written by scripts/setup.sh; re-run it if the checkout moves.
+[env]
+LIBTORCH_USE_PYTORCH = "1"
+VIRTUAL_ENV = { value = "$venv", force = true }
+PATH = { value = "$venv/bin:$PATH", force = true }
+GDRF_LIBTORCH_LIB = { value = "$torch_lib", force = true }
+GDRF_PYTHON = { value = "$venv/bin/python", force = true }
+TOML
+mv -f "$tmp" "$config"
+say "ready: torch $have_torch in .venv; cargo is configured (.cargo/config.toml)"

@@ -1,0 +1,113 @@
+//! Helpers shared by the integration tests: the project's Python, reference runs,
+//! and error reports.
+#![allow(dead_code)]
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use tch::Tensor;
+
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+/// The project's Python (set up by scripts/setup.sh). Panics with instructions when it is
+/// missing or lacks torch: cross-checks never skip silently.
+pub fn python() -> PathBuf {
+    let py = std::env::var_os("GDRF_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_root().join(".venv/bin/python"));
+    let ok = Command::new(&py)
+        .args(["-c", "import torch, safetensors, numpy; assert torch.__version__.startswith('2.11.0')"])
+        .status()
+        .map(|s| s.success())
+        .unwrap_or(false);
+    assert!(
+        ok,
+        "the PyTorch reference needs {} with torch 2.11.0, safetensors and numpy: run scripts/setup.sh",
+        py.display()
+    );
+    py
+}
+
+/// Runs a script of scripts/ with the project's Python; panics with its output on failure.
+pub fn run_python(script: &str, args: &[&str]) {
+    let out = Command::new(python())
+        .arg(repo_root().join("scripts").join(script))
+        .args(args)
+        .output()
+        .expect("failed to start python");
+    assert!(
+        out.status.success(),
+        "{script} {args:?} failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A fresh temporary folder, removed on drop.
+pub struct TempDir(pub PathBuf);
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("gdrf-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+pub fn read_tensors(path: &Path) -> HashMap<String, Tensor> {
+    Tensor::read_safetensors(path).unwrap().into_iter().collect()
+}
+
+/// max |a − b| / max |b|: the error relative to the reference tensor's scale.
+pub fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
+    assert_eq!(a.size(), b.size(), "shape mismatch");
+    let a = a.detach().to_kind(tch::Kind::Double);
+    let b = b.detach().to_kind(tch::Kind::Double);
+    let num = f64::try_from((&a - &b).abs().max()).unwrap();
+    let den = f64::try_from(b.abs().max()).unwrap();
+    assert!(num.is_finite(), "non-finite difference");
+    if den == 0.0 {
+        num
+    } else {
+        num / den
+    }
+}
+
+/// Collects the worst relative error per component and checks them against a tolerance.
+pub struct Report {
+    pub title: String,
+    pub tol: f64,
+    pub rows: Vec<(String, f64)>,
+}
+
+impl Report {
+    pub fn new(title: &str, tol: f64) -> Self {
+        Self { title: title.into(), tol, rows: Vec::new() }
+    }
+    pub fn check(&mut self, name: &str, got: &Tensor, want: &Tensor) {
+        let e = rel_err(got, want);
+        self.rows.push((name.to_string(), e));
+    }
+    /// Records the worst error of several tensors under one component name.
+    pub fn check_all(&mut self, name: &str, pairs: &[(Tensor, Tensor)]) {
+        let e = pairs.iter().map(|(g, w)| rel_err(g, w)).fold(0.0, f64::max);
+        self.rows.push((name.to_string(), e));
+    }
+    pub fn finish(self) {
+        println!("{} (tolerance {:e}, max |Δ| / max |reference|):", self.title, self.tol);
+        for (n, e) in &self.rows {
+            println!("  {n:<36} {e:.3e}{}", if *e > self.tol { "   FAIL" } else { "" });
+        }
+        let bad: Vec<_> = self.rows.iter().filter(|(_, e)| !(*e <= self.tol)).collect();
+        assert!(bad.is_empty(), "{}: components above tolerance: {bad:?}", self.title);
+    }
+}
