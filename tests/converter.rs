@@ -1,0 +1,49 @@
+//! scripts/convert_official_checkpoint.py on files shaped like the authors' release:
+//! the EMA shadow replaces the weights in the release's parameter order, and bad inputs
+//! fail with a message that names the file.
+mod common;
+
+use common::{python, read_tensors, repo_root, run_python, TempDir};
+use gdrf_core::checkpoint::load_generator;
+use std::process::Command;
+use tch::{Device, Kind};
+
+fn convert(args: &[&str]) -> (bool, String) {
+    let out = Command::new(python())
+        .arg(repo_root().join("scripts/convert_official_checkpoint.py"))
+        .args(args)
+        .output()
+        .unwrap();
+    (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+#[test]
+fn ema_weights_replace_the_raw_weights() {
+    let dir = TempDir::new("convert-ema");
+    let d = |n: &str| dir.path(n).to_str().unwrap().to_string();
+    run_python("reference/make_release_checkpoint.py", &["--out", &d("")]);
+    let (ok, err) = convert(&[&d("generator.pth"), &d("chair.safetensors"), "--ema", &d("ema.pth"), "--camera", "chair"]);
+    assert!(ok, "{err}");
+    let g = load_generator(&dir.path("chair.safetensors"), Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(g.header.camera, Some(gdrf_core::CameraConfig::chair()));
+    assert_eq!(g.header.generator, gdrf_core::GeneratorConfig::default());
+    let want = read_tensors(&dir.path("expected_ema.safetensors"));
+    let vars = g.vs.variables();
+    assert_eq!(want.len(), vars.len());
+    for (name, t) in &want {
+        assert!(vars[name].equal(t), "{name} differs from the EMA shadow");
+    }
+}
+
+#[test]
+fn bad_inputs_name_the_file() {
+    let dir = TempDir::new("convert-bad");
+    let d = |n: &str| dir.path(n).to_str().unwrap().to_string();
+    run_python("reference/make_release_checkpoint.py", &["--out", &d("")]);
+    std::fs::write(dir.path("junk.pth"), b"not a pickle").unwrap();
+    let (ok, err) = convert(&[&d("junk.pth"), &d("out.safetensors")]);
+    assert!(!ok && err.contains("junk.pth") && err.contains("torch.load"), "{err}");
+    let (ok, err) = convert(&[&d("generator.pth"), &d("out.safetensors"), "--ema", &d("ema_short.pth")]);
+    assert!(!ok && err.contains("ema_short.pth") && err.contains("47 shadow parameters"), "{err}");
+    assert!(!dir.path("out.safetensors").exists(), "a failed conversion left an output file");
+}
