@@ -13,9 +13,11 @@ pub mod camera;
 pub mod checkpoint;
 pub mod config;
 pub mod device;
+pub mod disc;
 pub mod error;
 pub mod field;
 pub mod io;
+pub mod loss;
 pub mod nn;
 pub mod render;
 

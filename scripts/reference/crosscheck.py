@@ -13,6 +13,7 @@ import os
 import sys
 
 import torch
+import torch.nn.functional as F
 from safetensors.torch import save_file
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -20,6 +21,7 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 
 import gdrf_ref as ref  # noqa: E402
+import losses_ref as L  # noqa: E402
 from names import release_to_gdrf  # noqa: E402
 import convert_official_checkpoint as conv  # noqa: E402
 
@@ -140,9 +142,110 @@ def generator_case(out, dtype, seed):
         json.dump(s, f)
 
 
+def losses_case(out, dtype, seed):
+    """Discriminator outputs at several sizes and α, every loss term, and the gradients of
+    the generator's and discriminator's totals w.r.t. all parameters and the real images."""
+    torch.manual_seed(seed)
+    gen = ref.Generator()
+    with torch.no_grad():
+        gen.deformnet.siren.final_layer.weight.uniform_(-0.02, 0.02)
+    gen = gen.to(dtype)
+    disc = L.Discriminator().to(dtype)
+    pth = os.path.join(out, "generator.pth")
+    torch.save(gen.state_dict(), pth)
+    conv.main([pth, os.path.join(out, "model.safetensors"), "--camera", "chair"])
+    save_file({L.disc_name_to_gdrf(k): v.contiguous() for k, v in disc.state_dict().items()},
+              os.path.join(out, "disc.safetensors"))
+
+    B, res, n, regions = 2, 16, 8, 2
+    s = dict(fov=50.0, ray_start=0.6, ray_end=1.4, num_steps=n, resolution=res, regions=regions, batch=B,
+             step=300000, topk_floor=0.3, alpha=0.7, disc_sizes=[32, 64, 128], disc_alphas=[1.0, 0.5])
+    t, e = {}, {}
+    rnd = lambda *shape: torch.rand(*shape, dtype=dtype)  # noqa: E731
+    for size in s["disc_sizes"]:
+        t[f"disc{size}_img"] = rnd(B, 3, size, size) * 2 - 1
+        for a in s["disc_alphas"]:
+            with torch.no_grad():
+                lo, la, po = disc(t[f"disc{size}_img"], a)
+            tag = f"disc{size}_a{int(a * 10)}"
+            e[f"{tag}_logit"], e[f"{tag}_latent"], e[f"{tag}_pose"] = lo, la, po
+
+    M_s, M_a = gen.deformnet.siren.mapping_network, gen.siren.mapping_network
+    r = res * res
+    t["z"] = torch.randn(B, 256, dtype=dtype)
+    t["pitch"] = torch.tensor([[0.95], [1.2]], dtype=dtype)
+    t["yaw"] = torch.tensor([[3.0], [-0.5]], dtype=dtype)
+    t["g_jitter"], t["g_imp"] = rnd(B, r, n), rnd(B, r, n)
+    n_reg = L.round_half_up(0.05 * r)
+    t["reg_rays"] = torch.randint(r, (B, n_reg))
+    args = lambda j, i: (t["pitch"], t["yaw"], res, s["fov"], s["ray_start"], s["ray_end"], n, j, i)  # noqa: E731
+
+    # Generator loss (release regularisers) and its gradients.
+    shape, app = M_s(t["z"]), M_a(t["z"])
+    img, _, _, smp = ref.render(gen, shape, app, *args(t["g_jitter"], t["g_imp"]), return_samples=True)
+    logit, _, pose = disc(img, s["alpha"])
+    k = L.topk_count(s["step"], B, floor=s["topk_floor"])
+    assert k == 1
+    terms = dict(g_adv=L.g_adv(logit, k), g_pose=L.pose_loss(pose, torch.cat([t["pitch"], t["yaw"]], 1)))
+    near, rest = L.select_release(smp, t["reg_rays"])
+    reg = L.regularisers(gen, shape, near, rest)
+    terms.update({"reg_" + k_: v for k_, v in reg.items()})
+    total = terms["g_adv"] + 15 * terms["g_pose"] + sum(L.REG_WEIGHTS[k_] * v for k_, v in reg.items())
+    gen.zero_grad()
+    disc.zero_grad()
+    total.backward()
+    e["g_total"] = total
+    for k_, v in terms.items():
+        e["g." + k_] = v
+    for name, p in gen.named_parameters():
+        e["g_grad.gen." + release_to_gdrf(name)] = p.grad.clone()
+    for name, p in disc.named_parameters():
+        e["g_grad.disc." + L.disc_name_to_gdrf(name)] = p.grad.clone() if p.grad is not None else torch.zeros_like(p)
+
+    # The paper's variant of the regularisers on the same render.
+    img, _, _, smp = ref.render(gen, M_s(t["z"]), M_a(t["z"]), *args(t["g_jitter"], t["g_imp"]), return_samples=True)
+    near, _ = L.select_paper(smp)
+    reg = L.regularisers(gen, M_s(t["z"]), near, None, variant="paper")
+    gen.zero_grad()
+    psum = sum(L.REG_WEIGHTS[k_] * v for k_, v in reg.items())
+    psum.backward()
+    for k_, v in reg.items():
+        e["paper." + k_] = v
+    for name, p in gen.named_parameters():
+        e["paper_grad." + release_to_gdrf(name)] = p.grad.clone() if p.grad is not None else torch.zeros_like(p)
+
+    # Discriminator loss with R1 and its gradients (parameters and real images).
+    t["d_jitter"], t["d_imp"] = rnd(B, r, n), rnd(B, r, n)
+    t["real"] = rnd(B, 3, res, res) * 2 - 1
+    t["real_pose"] = torch.tensor([[1.0, -3.1], [1.1, 2.0]], dtype=dtype)
+    with torch.no_grad():
+        fake, _, _ = ref.render(gen, M_s(t["z"]), M_a(t["z"]), *args(t["d_jitter"], t["d_imp"]))
+    real = t["real"].clone().requires_grad_(True)
+    lr, _, pr = disc(real, s["alpha"])
+    lf, _, pf = disc(fake, s["alpha"])
+    terms = dict(d_real=F.softplus(-lr).mean(), d_fake=F.softplus(lf).mean(), d_r1=L.r1(lr, real),
+                 d_pose_fake=L.pose_loss(pf, torch.cat([t["pitch"], t["yaw"]], 1)),
+                 d_pose_real=L.pose_loss(pr, t["real_pose"]))
+    total = terms["d_real"] + terms["d_fake"] + terms["d_r1"] + 15 * (terms["d_pose_fake"] + terms["d_pose_real"])
+    disc.zero_grad()
+    g_real = torch.autograd.grad(total, [real] + list(disc.parameters()), allow_unused=True)
+    e["d_total"] = total
+    for k_, v in terms.items():
+        e["d." + k_] = v
+    e["d_grad_real"] = g_real[0]
+    for (name, p), g in zip(disc.named_parameters(), g_real[1:]):
+        e["d_grad.disc." + L.disc_name_to_gdrf(name)] = g if g is not None else torch.zeros_like(p)
+
+    tensors = {k_: v.detach().contiguous() for k_, v in t.items()}
+    tensors.update({"expected." + k_: v.detach().contiguous() for k_, v in e.items()})
+    save_file(tensors, os.path.join(out, "case.safetensors"))
+    with open(os.path.join(out, "case.json"), "w") as f:
+        json.dump(s, f)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("case", choices=["generator"])
+    ap.add_argument("case", choices=["generator", "losses"])
     ap.add_argument("--out", required=True)
     ap.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     ap.add_argument("--seed", type=int, default=0)
@@ -150,7 +253,7 @@ def main():
     os.makedirs(a.out, exist_ok=True)
     torch.set_num_threads(max(1, os.cpu_count() or 1))
     dtype = dict(float32=torch.float32, float64=torch.float64)[a.dtype]
-    generator_case(a.out, dtype, a.seed)
+    dict(generator=generator_case, losses=losses_case)[a.case](a.out, dtype, a.seed)
 
 
 if __name__ == "__main__":

@@ -277,8 +277,10 @@ def integrate(rgb, sigma, z, white_back=True, last_back=False, force_last_white=
 # ----------------------------------------------------------------------------- renderer
 
 def render(gen, shape, appearance, pitch, yaw, res, fov, ray_start, ray_end, n, jitter, imp_u,
-           lock_view_dependence=False, **integ):
-    """Renders (B, 3, res, res) in [-1, 1]; jitter and imp_u are (B, R, n) uniforms."""
+           lock_view_dependence=False, return_samples=False, **integ):
+    """Renders (B, 3, res, res) in [-1, 1]; jitter and imp_u are (B, R, n) uniforms. With
+    return_samples, also the sorted depths z (B, R, 2n), expected depth (B, R, 1), ray
+    origins and directions (B, R, 3)."""
     b = pitch.shape[0]
     r = res * res
     origins, dirs = world_rays(pitch, yaw, res, fov)
@@ -306,4 +308,7 @@ def render(gen, shape, appearance, pitch, yaw, res, fov, ray_start, ray_end, n, 
     sigma = torch.gather(torch.cat([sigma_f, sigma_c], -2), 2, idx.unsqueeze(-1))
     pixel, depth, weights, opacity = integrate(rgb, sigma, z_all.unsqueeze(-1), **integ)
     img = pixel.reshape(b, res, res, 3).permute(0, 3, 1, 2) * 2 - 1
-    return img, depth.reshape(b, 1, res, res), opacity.reshape(b, 1, res, res)
+    out = (img, depth.reshape(b, 1, res, res), opacity.reshape(b, 1, res, res))
+    if return_samples:
+        out += (dict(z=z_all, depth=depth, origins=origins, dirs=dirs),)
+    return out

@@ -39,6 +39,32 @@ pub struct RenderedRays {
     pub z: Tensor,
     /// `(B, R, S, 1)` integration weights.
     pub weights: Tensor,
+    /// `(B, R, 3)` ray origins and unit directions.
+    pub origins: Tensor,
+    pub dirs: Tensor,
+}
+
+impl RenderedRays {
+    /// `(B, R, S, 3)` world-space sample points.
+    pub fn points(&self) -> Tensor {
+        self.origins.unsqueeze(2) + self.dirs.unsqueeze(2) * self.z.unsqueeze(-1)
+    }
+
+    /// Joins per-region results along the ray axis (the order of the image's rays).
+    pub fn concat(parts: &[RenderedRays]) -> RenderedRays {
+        let cat = |f: &dyn Fn(&RenderedRays) -> &Tensor| {
+            Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1)
+        };
+        RenderedRays {
+            pixel: cat(&|p| &p.pixel),
+            depth: cat(&|p| &p.depth),
+            opacity: cat(&|p| &p.opacity),
+            z: cat(&|p| &p.z),
+            weights: cat(&|p| &p.weights),
+            origins: cat(&|p| &p.origins),
+            dirs: cat(&|p| &p.dirs),
+        }
+    }
 }
 
 /// A rendered image batch.
@@ -142,7 +168,15 @@ impl<'a> Renderer<'a> {
         let rgb = gather_samples(&rgb, &idx);
         let sigma = gather_samples(&sigma, &idx);
         let c = composite(&rgb, &sigma, &z.unsqueeze(-1), &self.composite_options());
-        Ok(RenderedRays { pixel: c.pixel, depth: c.depth, opacity: c.opacity, z, weights: c.weights })
+        Ok(RenderedRays {
+            pixel: c.pixel,
+            depth: c.depth,
+            opacity: c.opacity,
+            z,
+            weights: c.weights,
+            origins: rays.origins.shallow_clone(),
+            dirs: rays.dirs.shallow_clone(),
+        })
     }
 
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so

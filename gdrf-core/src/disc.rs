@@ -1,0 +1,209 @@
+//! The discriminator: pi-GAN's progressive CoordConv residual encoder with anti-aliased
+//! fade-in, heads for the real/fake logit, a latent prediction and the pose (pitch, yaw).
+use crate::nn::mapping::leaky_relu;
+use crate::{Error, Result};
+use tch::{nn, Tensor};
+
+/// Channels of fromRGB[i] (the input of layers[i]).
+pub const CHANNELS: [i64; 9] = [16, 32, 64, 128, 256, 400, 400, 400, 400];
+/// Width of the latent-prediction head.
+pub const LATENT_DIM: i64 = 256;
+
+/// A 2-D convolution with PyTorch's default initialisation (weight and bias
+/// U(±1/√fan_in), fan_in = in·k·k), which the release keeps for every conv of D.
+#[derive(Debug)]
+pub struct Conv {
+    pub weight: Tensor,
+    pub bias: Tensor,
+    padding: i64,
+}
+
+impl Conv {
+    pub fn new(vs: nn::Path, cin: i64, cout: i64, k: i64, padding: i64) -> Self {
+        let b = 1.0 / ((cin * k * k) as f64).sqrt();
+        let init = nn::Init::Uniform { lo: -b, up: b };
+        Self { weight: vs.var("weight", &[cout, cin, k, k], init), bias: vs.var("bias", &[cout], init), padding }
+    }
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        x.conv2d(&self.weight, Some(&self.bias), [1, 1], [self.padding, self.padding], [1, 1], 1)
+    }
+}
+
+/// Appends the coordinate channels: first the row coordinate (varies along H), then the
+/// column coordinate (varies along W), each idx/(size − 1)·2 − 1. `x: (B, C, H, W)`.
+pub fn add_coords(x: &Tensor) -> Tensor {
+    let s = x.size();
+    let (b, h, w) = (s[0], s[2], s[3]);
+    let opts = (x.kind(), x.device());
+    let coord = |n: i64| Tensor::arange(n, opts) / ((n - 1).max(1) as f64) * 2.0 - 1.0;
+    let rows = coord(h).view([1, 1, h, 1]).expand([b, 1, h, w], false);
+    let cols = coord(w).view([1, 1, 1, w]).expand([b, 1, h, w], false);
+    Tensor::cat(&[x.shallow_clone(), rows, cols], 1)
+}
+
+/// CoordConv 3×3 → LeakyReLU → CoordConv 3×3 → LeakyReLU → avg-pool 2, plus a pooled
+/// (and, when widths differ, 1×1-projected) skip; the sum is scaled by 1/√2.
+#[derive(Debug)]
+pub struct ResidualBlock {
+    pub conv1: Conv,
+    pub conv2: Conv,
+    pub proj: Option<Conv>,
+}
+
+impl ResidualBlock {
+    pub fn new(vs: nn::Path, cin: i64, cout: i64) -> Self {
+        Self {
+            conv1: Conv::new(&vs / "conv1", cin + 2, cout, 3, 1),
+            conv2: Conv::new(&vs / "conv2", cout + 2, cout, 3, 1),
+            proj: (cin != cout).then(|| Conv::new(&vs / "proj", cin, cout, 1, 0)),
+        }
+    }
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        let y = leaky_relu(&self.conv1.forward(&add_coords(x)));
+        let y = leaky_relu(&self.conv2.forward(&add_coords(&y))).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None);
+        let skip = x.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None);
+        let skip = match &self.proj {
+            Some(p) => p.forward(&skip),
+            None => skip,
+        };
+        (y + skip) / std::f64::consts::SQRT_2
+    }
+}
+
+/// Anti-aliased ×2 downsampling: replicate-pad 1 px, then a depthwise stride-2 conv with
+/// the separable kernel [1, 3, 3, 1]/8 ⊗ [1, 3, 3, 1]/8. `(B, C, H, W)` → `(B, C, H/2, W/2)`.
+pub fn downsample_aa(x: &Tensor) -> Tensor {
+    let c = x.size()[1];
+    let k1 = Tensor::from_slice(&[1.0f64, 3.0, 3.0, 1.0]).to_kind(x.kind()).to_device(x.device()) / 8.0;
+    let k = k1.view([4, 1]).matmul(&k1.view([1, 4])).view([1, 1, 4, 4]).repeat([c, 1, 1, 1]);
+    x.pad([1, 1, 1, 1], "replicate", None).conv2d(&k, None::<Tensor>, [2, 2], [0, 0], [1, 1], c)
+}
+
+/// What the discriminator says about a batch.
+#[derive(Debug)]
+pub struct DiscOutput {
+    /// `(B, 1)` real/fake logit.
+    pub logit: Tensor,
+    /// `(B, 256)` latent prediction (weight 0 in every release config).
+    pub latent: Tensor,
+    /// `(B, 2)` predicted (pitch, yaw).
+    pub pose: Tensor,
+}
+
+#[derive(Debug)]
+pub struct Discriminator {
+    pub from_rgb: Vec<Conv>,
+    pub layers: Vec<ResidualBlock>,
+    pub head: Conv,
+}
+
+impl Discriminator {
+    pub fn new(vs: &nn::Path) -> Self {
+        let from_rgb = CHANNELS.iter().enumerate().map(|(i, &c)| Conv::new(vs / "from_rgb" / i, 3, c, 1, 0)).collect();
+        let layers = (0..8).map(|i| ResidualBlock::new(vs / "layers" / i, CHANNELS[i], CHANNELS[i + 1])).collect();
+        let head = Conv::new(vs / "head", CHANNELS[8], 1 + LATENT_DIM + 2, 2, 0);
+        Self { from_rgb, layers, head }
+    }
+
+    /// Index of the first block for a `size × size` input (512 → 0, …, 64 → 3, 2 → 8).
+    pub fn start_index(size: i64) -> Result<usize> {
+        match size {
+            2 | 4 | 8 | 16 | 32 | 64 | 128 | 256 | 512 => Ok(9 - size.trailing_zeros() as usize),
+            _ => Err(Error::Invalid(format!(
+                "discriminator input is {size}×{size}; expected a power of two from 2 to 512"
+            ))),
+        }
+    }
+
+    /// `img: (B, 3, S, S)` in [−1, 1]; `alpha` ∈ [0, 1] fades in the first block (1 = fully in).
+    pub fn forward(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
+        let size = img.size()[3];
+        if img.size()[2] != size || img.size()[1] != 3 {
+            return Err(Error::Invalid(format!("discriminator expects (B, 3, S, S) images, got {:?}", img.size())));
+        }
+        let start = Self::start_index(size)?;
+        let mut x = leaky_relu(&self.from_rgb[start].forward(img));
+        for (i, layer) in self.layers[start.min(8)..].iter().enumerate() {
+            if i == 1 && alpha < 1.0 {
+                let skip = leaky_relu(&self.from_rgb[start + 1].forward(&downsample_aa(img)));
+                x = x * alpha + skip * (1.0 - alpha);
+            }
+            x = layer.forward(&x);
+        }
+        let out = self.head.forward(&x).flatten(1, -1);
+        Ok(DiscOutput {
+            logit: out.narrow(1, 0, 1),
+            latent: out.narrow(1, 1, LATENT_DIM),
+            pose: out.narrow(1, 1 + LATENT_DIM, 2),
+        })
+    }
+}
+
+/// The release's fade-in: α = 1 until the first resolution switch, then rises linearly
+/// from 0 to 1 over `fade_steps` steps after it.
+pub fn fade_alpha(step: i64, switch_step: Option<i64>, fade_steps: i64) -> f64 {
+    match switch_step {
+        Some(s) if step >= s => ((step - s) as f64 / fade_steps.max(1) as f64).min(1.0),
+        _ => 1.0,
+    }
+}
+
+/// Number of parameters a `size × size` input actually uses.
+pub fn used_parameters(d: &Discriminator, size: i64) -> Result<i64> {
+    let start = Discriminator::start_index(size)?;
+    let n = |c: &Conv| (c.weight.numel() + c.bias.numel()) as i64;
+    let mut total = n(&d.from_rgb[start]) + n(&d.head);
+    if start + 1 < 9 {
+        total += n(&d.from_rgb[start + 1]);
+    }
+    for l in &d.layers[start..] {
+        total += n(&l.conv1) + n(&l.conv2) + l.proj.as_ref().map(n).unwrap_or(0);
+    }
+    Ok(total)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{Device, Kind};
+
+    #[test]
+    fn parameter_counts_match_the_release() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let d = Discriminator::new(&vs.root());
+        let total: i64 = vs.trainable_variables().iter().map(|t| t.numel() as i64).sum();
+        assert_eq!(total, 12_825_523);
+        assert_eq!(used_parameters(&d, 64).unwrap(), 12_508_883);
+        assert_eq!(used_parameters(&d, 128).unwrap(), 12_742_483);
+    }
+
+    #[test]
+    fn outputs_have_the_head_layout_at_every_size() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let d = Discriminator::new(&vs.root());
+        for s in [8, 32, 64] {
+            let img = Tensor::rand([2, 3, s, s], (Kind::Float, Device::Cpu));
+            let o = d.forward(&img, 0.5).unwrap();
+            assert_eq!(o.logit.size(), [2, 1]);
+            assert_eq!(o.latent.size(), [2, 256]);
+            assert_eq!(o.pose.size(), [2, 2]);
+        }
+        assert!(d.forward(&Tensor::rand([1, 3, 48, 48], (Kind::Float, Device::Cpu)), 1.0).is_err());
+    }
+
+    #[test]
+    fn aa_downsample_keeps_constants_and_halves_size() {
+        let x = Tensor::full([1, 2, 8, 8], 0.7, (Kind::Double, Device::Cpu));
+        let y = downsample_aa(&x);
+        assert_eq!(y.size(), [1, 2, 4, 4]);
+        assert!(f64::try_from((y - 0.7).abs().max()).unwrap() < 1e-12);
+    }
+
+    #[test]
+    fn fade_schedule() {
+        assert_eq!(fade_alpha(50, None, 10_000), 1.0);
+        assert_eq!(fade_alpha(95_100, Some(95_100), 10_000), 0.0);
+        assert_eq!(fade_alpha(100_100, Some(95_100), 10_000), 0.5);
+        assert_eq!(fade_alpha(200_000, Some(95_100), 10_000), 1.0);
+    }
+}

@@ -1,0 +1,68 @@
+//! Adversarial terms: non-saturating logistic losses, R1, the pose loss and top-k.
+use tch::Tensor;
+
+/// D's loss on fakes, mean softplus(logit). `logit: (B, 1)`.
+pub fn d_fake(logit: &Tensor) -> Tensor {
+    logit.softplus().mean(logit.kind())
+}
+
+/// D's loss on reals, mean softplus(−logit).
+pub fn d_real(logit: &Tensor) -> Tensor {
+    (-logit).softplus().mean(logit.kind())
+}
+
+/// G's non-saturating loss over the `k` largest logits: mean softplus(−logit).
+pub fn g_nonsaturating(logit: &Tensor, k: i64) -> Tensor {
+    let b = logit.size()[0];
+    let l = logit.view([-1]);
+    let l = if k < b { l.topk(k, 0, true, true).0 } else { l };
+    (-l).softplus().mean(logit.kind())
+}
+
+/// The release's top-k schedule: p = max(0.99^(step/interval), v), k = ⌈p·n⌉.
+pub fn topk_count(step: i64, n: i64, interval: f64, v: f64) -> i64 {
+    let p = 0.99f64.powf(step as f64 / interval).max(v);
+    ((p * n as f64).ceil() as i64).clamp(1, n)
+}
+
+/// R1: 0.5 · mean_b ‖∂Σlogit/∂x_b‖² on real images `x: (B, 3, H, W)` that require grad.
+/// The gradient is taken with `create_graph` so that the penalty trains D.
+pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Tensor {
+    let g = Tensor::run_backward(&[real_logit.sum(real_logit.kind())], &[real], true, true).remove(0);
+    // Σx² rather than ‖x‖²: same value, and a plain polynomial has no kink at 0.
+    g.square().flatten(1, -1).sum_dim_intlist(1, false, g.kind()).mean(g.kind()) * 0.5
+}
+
+/// Pose loss: mean over the batch and both angles of 1 − cos(pred − target); periodic,
+/// so ±π wrap-around costs nothing. `pred`, `target: (B, 2)`.
+pub fn pose_loss(pred: &Tensor, target: &Tensor) -> Tensor {
+    (-(pred - target).cos() + 1.0).mean(pred.kind())
+}
+
+/// The latent-prediction loss MSE(pred, z) (weight 0 in the release configs).
+pub fn latent_loss(pred: &Tensor, z: &Tensor) -> Tensor {
+    pred.mse_loss(z, tch::Reduction::Mean)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{Device, Kind};
+
+    #[test]
+    fn topk_follows_the_release_schedule() {
+        assert_eq!(topk_count(0, 4, 2000.0, 0.6), 4);
+        assert_eq!(topk_count(57_000, 4, 2000.0, 0.6), 4);
+        assert_eq!(topk_count(58_000, 4, 2000.0, 0.6), 3);
+        assert_eq!(topk_count(1_000_000, 4, 2000.0, 0.6), 3); // the 0.6 floor
+        assert_eq!(topk_count(1_000_000, 1, 2000.0, 0.6), 1);
+    }
+
+    #[test]
+    fn g_loss_keeps_the_largest_logits() {
+        let l = Tensor::from_slice(&[-3.0f64, 5.0, 1.0, 0.0]).view([4, 1]);
+        let want = (Tensor::from_slice(&[-5.0f64, -1.0])).softplus().mean(Kind::Double);
+        assert!(g_nonsaturating(&l, 2).allclose(&want, 1e-12, 1e-12, false));
+        let _ = Device::Cpu;
+    }
+}
