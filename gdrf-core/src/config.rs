@@ -199,6 +199,11 @@ impl RenderConfig {
         if self.num_steps < 1 {
             return Err(Error::Config("render.num_steps must be at least 1".into()));
         }
+        if self.last_back && self.white_back {
+            return Err(Error::Config(
+                "render.last_back and render.white_back both fill the leftover transmittance; enable at most one".into(),
+            ));
+        }
         if self.chunk_points == 0 {
             return Err(Error::Config("render.chunk_points must be at least 1".into()));
         }

@@ -130,8 +130,29 @@ fn norm(x: &Tensor) -> Tensor {
     x.linalg_norm(2.0, [-1i64].as_slice(), false, x.kind())
 }
 
+/// The stop-gradient target ∇σ: the full target-space gradient of the raw final density
+/// `sigma` w.r.t. the points `x` it was computed from (graph kept, no second order).
+pub fn density_gradient(x: &Tensor, sigma: &Tensor) -> Tensor {
+    Tensor::run_backward(&[sigma.sum(sigma.kind())], &[x], true, false).remove(0).detach()
+}
+
+/// Per-point 1 − cos(∇σ_t, target) with ∇σ_t = ∂σ_t/∂x_t taken w.r.t. the template-space
+/// points `x_t = x + Δx` themselves, so its gradient reaches T_σ and, through x_t, the
+/// deformation. Zero vectors give cos = 0 with finite gradients (libtorch clamps the norms
+/// by eps = 1e-8). `x_t`, `target: (B, P, 3)`, `sigma_t: (B, P, 1)` → `(B, P)`.
+pub fn normal_distance(x_t: &Tensor, sigma_t: &Tensor, target: &Tensor) -> Tensor {
+    let grad_t = Tensor::run_backward(&[sigma_t.sum(sigma_t.kind())], &[x_t], true, true).remove(0);
+    -Tensor::cosine_similarity(&grad_t, target, -1, 1e-8) + 1.0
+}
+
 /// Computes the four regularisers for shape modulation `shape` (one row per image).
+/// Autograd is enabled inside (the terms are built from spatial gradients), so this also
+/// works when called under `no_grad`, e.g. for finite differences.
 pub fn regularisers(gen: &Generator, shape: &Film, samples: &RegSamples, variant: RegVariant) -> RegTerms {
+    tch::with_grad(|| regularisers_with_grad(gen, shape, samples, variant))
+}
+
+fn regularisers_with_grad(gen: &Generator, shape: &Film, samples: &RegSamples, variant: RegVariant) -> RegTerms {
     let near = samples.near.detach();
     let pn = near.size()[1];
     let x = match &samples.rest {
@@ -151,14 +172,11 @@ pub fn regularisers(gen: &Generator, shape: &Film, samples: &RegSamples, variant
     let j = &jac + &eye;
     let strain = j.transpose(-1, -2).matmul(&j) - &eye;
 
-    // Normal consistency on the near samples.
-    let xn = x.narrow(1, 0, pn);
-    let x_t = &xn + dx.narrow(1, 0, pn);
+    // Normal consistency on the near samples, against the stop-gradient target.
+    let x_t = x.narrow(1, 0, pn) + dx.narrow(1, 0, pn);
     let (_, sigma_t) = gen.template.density(&x_t);
-    let sigma = &sigma_t + dsigma.narrow(1, 0, pn);
-    let grad_t = Tensor::run_backward(&[sigma_t.sum(sigma_t.kind())], &[&x_t], true, true).remove(0);
-    let grad = Tensor::run_backward(&[sigma.sum(sigma.kind())], &[&x], true, false).remove(0).narrow(1, 0, pn).detach();
-    let cos_dist = -Tensor::cosine_similarity(&grad_t, &grad, -1, 1e-8) + 1.0;
+    let target = density_gradient(&x, &(&sigma_t + dsigma.narrow(1, 0, pn))).narrow(1, 0, pn);
+    let cos_dist = normal_distance(&x_t, &sigma_t, &target);
 
     match variant {
         RegVariant::Release => RegTerms {

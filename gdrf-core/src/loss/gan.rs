@@ -1,4 +1,5 @@
 //! Adversarial terms: non-saturating logistic losses, R1, the pose loss and top-k.
+use crate::{Error, Result};
 use tch::Tensor;
 
 /// D's loss on fakes, mean softplus(logit). `logit: (B, 1)`.
@@ -27,10 +28,13 @@ pub fn topk_count(step: i64, n: i64, interval: f64, v: f64) -> i64 {
 
 /// R1: 0.5 · mean_b ‖∂Σlogit/∂x_b‖² on real images `x: (B, 3, H, W)` that require grad.
 /// The gradient is taken with `create_graph` so that the penalty trains D.
-pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Tensor {
+pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Result<Tensor> {
+    if !real.requires_grad() || !real_logit.requires_grad() {
+        return Err(Error::Invalid("R1 needs real images that require grad and logits computed from them with autograd on".into()));
+    }
     let g = Tensor::run_backward(&[real_logit.sum(real_logit.kind())], &[real], true, true).remove(0);
     // Σx² rather than ‖x‖²: same value, and a plain polynomial has no kink at 0.
-    g.square().flatten(1, -1).sum_dim_intlist(1, false, g.kind()).mean(g.kind()) * 0.5
+    Ok(g.square().flatten(1, -1).sum_dim_intlist(1, false, g.kind()).mean(g.kind()) * 0.5)
 }
 
 /// Pose loss: mean over the batch and both angles of 1 − cos(pred − target); periodic,

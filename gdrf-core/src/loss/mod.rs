@@ -143,7 +143,7 @@ pub fn discriminator_loss(
     let mut total = &d_real + &d_fake + (&pose_fake + &pose_real) * cfg.pose_weight;
     let mut terms = vec![("d_real", d_real), ("d_fake", d_fake)];
     if r1_now {
-        let r1 = gan::r1_penalty(&dr.logit, &real);
+        let r1 = gan::r1_penalty(&dr.logit, &real)?;
         total = total + &r1 * (cfg.r1_gamma * cfg.r1_interval.max(1) as f64);
         terms.push(("d_r1", r1));
     }

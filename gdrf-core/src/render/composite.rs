@@ -57,7 +57,8 @@ pub fn weights_from_density(sigma: &Tensor, z: &Tensor, delta_final: f64) -> Ten
     let s = z.size()[z.dim() - 2];
     let deltas = z.narrow(-2, 1, s - 1) - z.narrow(-2, 0, s - 1);
     let deltas = Tensor::cat(&[deltas, z.narrow(-2, 0, 1).full_like(delta_final)], -2);
-    let alphas = -(-(deltas * sigma.softplus())).exp() + 1.0;
+    // +inf densities are capped so that a zero-length interval gives 0, not 0·inf = NaN.
+    let alphas = -(-(deltas * sigma.clamp_max(1e30).softplus())).exp() + 1.0;
     let shifted = Tensor::cat(&[alphas.narrow(-2, 0, 1).ones_like(), (-&alphas + 1.0) + 1e-10], -2);
     &alphas * shifted.cumprod(-2, alphas.kind()).narrow(-2, 0, s)
 }
