@@ -25,8 +25,8 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 
 have_torch="$("$venv/bin/python" -c 'import torch; print(torch.__version__.split("+")[0])' 2>/dev/null || true)"
-if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors' >/dev/null 2>&1; then
-  say "installing torch==$want_torch, numpy, safetensors from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
+if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors, matplotlib' >/dev/null 2>&1; then
+  say "installing torch==$want_torch, numpy, safetensors, matplotlib from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
   "$venv/bin/python" -m pip install --quiet --upgrade pip >/dev/null 2>&1 || true
   "$venv/bin/python" -m pip install --quiet -r "$root/scripts/requirements.txt" \
     || die "pip could not install $root/scripts/requirements.txt. Check the network connection to PyPI and free disk space (about 5 GB), then re-run scripts/setup.sh."
