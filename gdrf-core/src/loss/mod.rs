@@ -157,3 +157,45 @@ pub fn discriminator_loss(
     }
     Ok(Losses { total, terms })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{CameraConfig, Generator, GeneratorConfig, RenderConfig};
+    use tch::{nn, Device, Kind};
+
+    #[test]
+    fn lazy_r1_applies_every_k_steps_scaled_by_k() {
+        tch::manual_seed(0);
+        let gvs = nn::VarStore::new(Device::Cpu);
+        let cfg = GeneratorConfig { latent_dim: 4, hidden_dim: 8, mapping_hidden_dim: 8, ..Default::default() };
+        let gen = Generator::new(&gvs.root(), &cfg).unwrap();
+        let dvs = nn::VarStore::new(Device::Cpu);
+        let disc = Discriminator::new(&dvs.root());
+        let (cam, rc) = (CameraConfig::chair(), RenderConfig { num_steps: 4, ..Default::default() });
+        let r = Renderer::new(&gen, &cam, &rc).unwrap();
+        let z = Tensor::randn([2, 4], (Kind::Float, Device::Cpu));
+        let lat = gen.latents(&z, &z, None);
+        let poses = Poses::from_angles(&[(1.0, 0.0), (1.2, 2.0)], Kind::Float, Device::Cpu);
+        let noise = Noise {
+            jitter: Some(Tensor::rand([2, 64, 4], (Kind::Float, Device::Cpu))),
+            importance: Some(Tensor::rand([2, 64, 4], (Kind::Float, Device::Cpu))),
+        };
+        let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: 8, regions: 1, noise: &noise };
+        let real = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu));
+        let rp = poses.stacked();
+        let lazy = LossConfig { r1_interval: 4, r1_gamma: 2.0, ..Default::default() };
+        let every = LossConfig { r1_gamma: 2.0, ..Default::default() };
+        let at = |step| Schedule { step, alpha: 1.0 };
+        let off = discriminator_loss(&r, &disc, &real, &rp, &fake, at(3), &lazy).unwrap();
+        assert!(off.get("d_r1").is_none());
+        let on = discriminator_loss(&r, &disc, &real, &rp, &fake, at(8), &lazy).unwrap();
+        let base = discriminator_loss(&r, &disc, &real, &rp, &fake, at(8), &every).unwrap();
+        let r1 = on.get("d_r1").unwrap().double_value(&[]);
+        assert!(r1 > 0.0);
+        let extra = on.total.double_value(&[]) - off.total.double_value(&[]);
+        assert!((extra - 4.0 * 2.0 * r1).abs() < 1e-5 * (1.0 + extra.abs()), "{extra} vs {}", 8.0 * r1);
+        let extra_every = base.total.double_value(&[]) - off.total.double_value(&[]);
+        assert!((extra_every - 2.0 * r1).abs() < 1e-5 * (1.0 + extra.abs()));
+    }
+}
