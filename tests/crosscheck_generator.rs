@@ -9,6 +9,7 @@ use common::{read_tensors, run_python, Report, TempDir};
 use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::field::generator::{FieldOptions, Truncation};
+use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::samplers::{importance_depths, stratified_depths};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
 use gdrf_core::{CameraConfig, Film, Latents, RenderConfig};
@@ -167,6 +168,8 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
             rep.check(&format!("render {res}² ψ, locked dirs, white last"), &img.rgb, &w("trunc_locked_rgb"));
         }
     }
+    let codes: Vec<Tensor> = [0, 1, 42].iter().map(|&s| seeded_randn(&[1, 256], s)).collect();
+    rep.check("seed → code (torch.manual_seed)", &Tensor::cat(&codes, 0), case.want("seed_codes"));
     rep.finish();
 }
 

@@ -153,7 +153,6 @@ fn render(a: RenderArgs) -> Result<()> {
         _ => a.appearance_seeds.clone(),
     };
     let z_a = Tensor::cat(&app_seeds.iter().map(|&s| code(s)).collect::<Vec<_>>(), 0);
-    tch::manual_seed(a.init_seed.wrapping_add(12345));
     let trunc = (a.psi != 1.0).then(|| generator.truncation(a.psi, 10_000, 0));
     let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
 

@@ -135,6 +135,13 @@ def generator_case(out, dtype, seed):
                                         *args, lock_view_dependence=True, force_last_white=True)
             e[f"render{res}_trunc_locked_rgb"] = img3
 
+    # Seeds name the same codes as torch.manual_seed(s); torch.randn(1, 256).
+    codes = []
+    for seed in (0, 1, 42):
+        torch.manual_seed(seed)
+        codes.append(torch.randn(1, 256))
+    e["seed_codes"] = torch.cat(codes)
+
     tensors = {k: v.detach().contiguous() for k, v in t.items()}
     tensors.update({"expected." + k: v.detach().contiguous() for k, v in e.items()})
     save_file(tensors, os.path.join(out, "case.safetensors"))
