@@ -43,6 +43,12 @@ impl Scene {
     /// Centres the geometry's bounding box at the origin and scales it so that every
     /// primitive's bounds lie within `radius` of the origin.
     pub fn new(geometry: &Geometry, appearance: &Appearance, radius: f64) -> Result<Self> {
+        let (centre, scale) = Self::fit(geometry, radius)?;
+        Ok(Self::with_transform(geometry, appearance, centre, scale))
+    }
+
+    /// The natural point placed at the origin and the scale that [`Scene::new`] uses.
+    pub fn fit(geometry: &Geometry, radius: f64) -> Result<(V3, f32)> {
         if geometry.prims.is_empty() || !(radius > 0.0) {
             return Err(Error::Invalid("a scene needs at least one primitive and a positive radius".into()));
         }
@@ -62,10 +68,15 @@ impl Scene {
         if !(extent.is_finite() && extent > 0.0) {
             return Err(Error::Invalid(format!("degenerate geometry (extent {extent})")));
         }
-        let scale = radius as f32 / extent;
+        Ok((centre, radius as f32 / extent))
+    }
+
+    /// The geometry with natural point `centre` at the origin, scaled by `scale` (e.g. to
+    /// compare two shapes in a common frame).
+    pub fn with_transform(geometry: &Geometry, appearance: &Appearance, centre: V3, scale: f32) -> Self {
         let prims: Vec<Prim> = geometry.prims.iter().map(|p| p.transformed(centre, scale)).collect();
         let bounds = prims.iter().map(|p| (p.pos, p.shape.bounding_radius().powi(2))).collect();
-        Ok(Self { prims, bounds, frames: geometry.frames, centre, scale, appearance: appearance.clone() })
+        Self { prims, bounds, frames: geometry.frames, centre, scale, appearance: appearance.clone() }
     }
 
     /// The world position of a natural-units point (e.g. a part's centre).
@@ -374,10 +385,7 @@ mod tests {
         let centre = v3(0.15, 0.1, -0.05);
         let prims = vec![Prim::new(Shape::Sphere { radius: 0.04 }, Rot::IDENTITY, centre, 0)];
         let frames = [(Rot::IDENTITY, V3::default()); PARTS];
-        let mut scene = Scene::new(&Geometry { prims, frames }, &test_appearance(), 0.04).unwrap();
-        // Undo the centring so the sphere stays where we put it.
-        scene.prims[0].pos = centre;
-        scene.bounds[0].0 = centre;
+        let scene = Scene::with_transform(&Geometry { prims, frames }, &test_appearance(), V3::default(), 1.0);
         let opts = RenderOptions { resolution: 64, supersample: 2, fov_deg: 50.0, shadows: false };
         for (p, y) in [(1.0, 0.3), (0.85, 2.5), (1.3, -1.7)] {
             let img = render(&scene, p, y, &opts).unwrap();
