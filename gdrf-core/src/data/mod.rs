@@ -216,7 +216,7 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
             split: opts.split,
         },
     )?;
-    let fingerprint = fingerprint(opts, &listing)?;
+    let fingerprint = fingerprint(opts, &listing);
     let cache_path = opts.cache.then(|| {
         let split = opts.split.map_or("", |s| if s == Split::Train { "-train" } else { "-held_out" });
         let dir = opts.cache_dir.clone().unwrap_or_else(|| dir.join(".gdrf-cache"));
@@ -292,7 +292,7 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
 }
 
 /// FNV-1a over everything the cached pixels depend on.
-fn fingerprint(opts: &LoadOptions, listing: &layouts::Listing) -> Result<String> {
+fn fingerprint(opts: &LoadOptions, listing: &layouts::Listing) -> String {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     let mut eat = |bytes: &[u8]| {
         for b in bytes {
@@ -303,12 +303,16 @@ fn fingerprint(opts: &LoadOptions, listing: &layouts::Listing) -> Result<String>
     eat(format!("v1 {} {} {}", listing.layout.name(), opts.resolution, opts.skip_bad).as_bytes());
     for f in listing.files.iter().chain(&listing.pose_files) {
         eat(f.to_string_lossy().as_bytes());
-        let meta = std::fs::metadata(f).map_err(|source| Error::Io { path: f.clone(), source })?;
+        // A file that cannot be stat'ed (a dangling link) fails or is skipped when decoded.
+        let Ok(meta) = std::fs::metadata(f) else {
+            eat(b"unreadable");
+            continue;
+        };
         let mtime = meta.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map_or(0, |d| d.as_nanos());
         eat(&meta.len().to_le_bytes());
         eat(&mtime.to_le_bytes());
     }
-    Ok(format!("{h:016x}"))
+    format!("{h:016x}")
 }
 
 #[derive(Serialize, Deserialize)]
