@@ -411,3 +411,14 @@ fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
         Err(e) => assert!(e.to_string().contains("no images"), "{e}"),
     }
 }
+
+#[test]
+fn regenerating_a_folder_leaves_exactly_the_new_dataset() {
+    let tmp = TempDir::new("synth-regen");
+    let dir = tmp.path("d");
+    synth::generate(&dir, &small(Category::Chairs, 6), 2, &|| {}).unwrap();
+    let meta = synth::generate(&dir, &SynthOptions { seed: 1, ..small(Category::Tables, 3) }, 2, &|| {}).unwrap();
+    let names: Vec<String> = files(&dir).into_iter().map(|f| format!("images/{}", f.0)).collect();
+    assert_eq!(names, meta.images.iter().map(|r| r.file.clone()).collect::<Vec<_>>());
+    assert_eq!(Metadata::load(&dir).unwrap().options.category, Category::Tables);
+}

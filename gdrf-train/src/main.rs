@@ -221,6 +221,7 @@ fn synth_cmd(a: SynthArgs) -> Result<()> {
         shadows: !a.no_shadows,
         camera,
     };
+    opts.validate().context("invalid `dataset synth` options")?;
     let threads = data::thread_count(a.threads);
     let pb = bar(a.count, &format!("rendering {} ({threads} threads)", a.category.name()));
     let start = Instant::now();
@@ -301,7 +302,8 @@ fn inspect_cmd(a: InspectArgs) -> Result<()> {
 
 /// Loads with a progress bar and prints what was loaded, skipped and how fast.
 fn load_reporting(dir: &Path, opts: &LoadOptions) -> Result<data::Dataset> {
-    let pb = bar(0, "decoding");
+    let pb = ProgressBar::new_spinner();
+    pb.set_style(ProgressStyle::with_template("{spinner} decoding {pos} images ({per_sec})").expect("static template"));
     let start = Instant::now();
     let ds = data::load(dir, opts, &|| {
         pb.inc(1);

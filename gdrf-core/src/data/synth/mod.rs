@@ -308,6 +308,7 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
         progress();
         Ok(rec)
     })?;
+    remove_stale_images(&images_dir, &records)?;
     let poses: BTreeMap<&str, serde_json::Value> = records
         .iter()
         .map(|r| (r.file.as_str(), serde_json::json!({ "phi": r.pitch, "theta": r.yaw })))
@@ -321,6 +322,25 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
     };
     write_json(&meta_path, &meta)?;
     Ok(meta)
+}
+
+/// Deletes PNGs in `images/` that this generation did not write (left by an earlier,
+/// larger or interrupted one), so the folder holds exactly the dataset described.
+fn remove_stale_images(images_dir: &Path, records: &[ImageRecord]) -> Result<()> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| Error::Io { path, source }
+    };
+    let keep: std::collections::HashSet<&str> =
+        records.iter().filter_map(|r| r.file.strip_prefix("images/")).collect();
+    for entry in std::fs::read_dir(images_dir).map_err(io(images_dir))? {
+        let path = entry.map_err(io(images_dir))?.path();
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        if name.ends_with(".png") && !keep.contains(name) {
+            std::fs::remove_file(&path).map_err(io(&path))?;
+        }
+    }
+    Ok(())
 }
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
