@@ -142,7 +142,10 @@ fn valid_jpeg() -> Vec<u8> {
     v
 }
 
-fn bad_images(root: &Path) -> Vec<(PathBuf, Box<dyn FnOnce(&Path)>, &'static str)> {
+/// A bad file's path, how to make it, and what the error must say.
+type BadImage = (PathBuf, Box<dyn FnOnce(&Path)>, &'static str);
+
+fn bad_images(root: &Path) -> Vec<BadImage> {
     vec![
         (root.join("empty/x.png"), Box::new(|p: &Path| std::fs::write(p, b"").unwrap()), "empty file"),
         (

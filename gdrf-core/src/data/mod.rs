@@ -492,7 +492,7 @@ mod tests {
         assert_eq!(v, (0..100).map(|i| i * 2).collect::<Vec<_>>());
         let e = par_try_map(100, 2, |i| if i == 7 { Err(Error::Invalid(format!("bad {i}"))) } else { Ok(i) }).unwrap_err();
         assert!(e.to_string().contains("bad 7"));
-        assert!(par_try_map(0, 2, |i| Ok(i)).unwrap().is_empty());
+        assert!(par_try_map(0, 2, Ok).unwrap().is_empty());
     }
 
     #[test]

@@ -92,7 +92,7 @@ fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
 pub fn encode_matrix_f64(m: &[[f64; 4]; 4]) -> Vec<u8> {
     let mut header = "{'descr': '<f8', 'fortran_order': False, 'shape': (4, 4), }".to_string();
     // Pad so that magic + length + header + newline is a multiple of 64, as numpy does.
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');

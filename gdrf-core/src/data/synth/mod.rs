@@ -22,7 +22,7 @@ use render::{fit_radius, render, Rendered, RenderOptions, Scene};
 use rng::{object_seed, Rng, Stream};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub const METADATA_FILE: &str = "metadata.json";
 pub const FORMAT_VERSION: u32 = 1;
@@ -367,9 +367,4 @@ pub fn render_swap(
     opts.supersample = supersample.unwrap_or(opts.supersample);
     opts.validate()?;
     render_object(&s.shape, &a.appearance, pitch, yaw, &opts)
-}
-
-/// Paths of the images of a split (all when `split` is None), in index order.
-pub fn image_paths(dir: &Path, meta: &Metadata, split: Option<Split>) -> Vec<PathBuf> {
-    meta.images.iter().filter(|r| split.is_none_or(|s| r.split == s)).map(|r| dir.join(&r.file)).collect()
 }

@@ -49,7 +49,7 @@ impl Scene {
 
     /// The natural point placed at the origin and the scale that [`Scene::new`] uses.
     pub fn fit(geometry: &Geometry, radius: f64) -> Result<(V3, f32)> {
-        if geometry.prims.is_empty() || !(radius > 0.0) {
+        if geometry.prims.is_empty() || radius.is_nan() || radius <= 0.0 {
             return Err(Error::Invalid("a scene needs at least one primitive and a positive radius".into()));
         }
         let boxes: Vec<(V3, V3)> = geometry.prims.iter().map(Prim::aabb).collect();
@@ -323,15 +323,15 @@ pub fn render(scene: &Scene, pitch: f64, yaw: f64, opts: &RenderOptions) -> Resu
                     };
                     let shade = (AMBIENT * (0.8 + 0.2 * n.y) + KEY * key * shadow + FILL * (-n.dot(d)).max(0.0)).min(1.0);
                     let albedo = scene.albedo(prim, p);
-                    for c in 0..3 {
-                        colour[c] += albedo[c] * shade;
+                    for (c, a) in colour.iter_mut().zip(albedo) {
+                        *c += a * shade;
                     }
                     out.alpha[pix] += inv;
                     out.parts[pix * PARTS + prim.part as usize] += inv;
                 }
             }
-            for c in 0..3 {
-                out.rgb[pix * 3 + c] = colour[c] * inv;
+            for (o, c) in out.rgb[pix * 3..pix * 3 + 3].iter_mut().zip(colour) {
+                *o = c * inv;
             }
         }
     }
@@ -358,7 +358,7 @@ mod tests {
                     let x = -1.0 + 2.0 * col as f32 / (res - 1) as f32;
                     let yy = 1.0 - 2.0 * row as f32 / (res - 1) as f32;
                     let d = cam.dir(x, yy);
-                    let want = Vec::<f64>::try_from(rays.dirs.get(b as i64).get((row * res + col) as i64)).unwrap();
+                    let want = Vec::<f64>::try_from(rays.dirs.get(b as i64).get(row * res + col)).unwrap();
                     let err = (d - v3(want[0] as f32, want[1] as f32, want[2] as f32)).length();
                     assert!(err < 1e-5, "pose {b} pixel ({row},{col}): {err}");
                     // Projection inverts ray generation.
