@@ -15,6 +15,9 @@ pub enum Error {
     UnexpectedTensor { path: PathBuf, name: String, found: Vec<usize> },
     #[error("{path}: tensor '{name}' has dtype {found}, expected F32 or F64")]
     DType { path: PathBuf, name: String, found: String },
+    /// A dataset file (image, pose file, metadata) that cannot be used, and why.
+    #[error("{path}: {reason}")]
+    Data { path: PathBuf, reason: String },
     #[error("invalid configuration: {0}")]
     Config(String),
     #[error("invalid argument: {0}")]

@@ -12,6 +12,7 @@
 pub mod camera;
 pub mod checkpoint;
 pub mod config;
+pub mod data;
 pub mod device;
 pub mod disc;
 pub mod error;

@@ -1,13 +1,365 @@
-//! gdrf-train: not implemented yet; prints its help.
-use clap::Parser;
+//! gdrf-train: datasets now (generate the procedural dataset, render swaps, inspect and
+//! cache image folders); training itself comes with the training issue.
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use gdrf_core::config::CameraConfig;
+use gdrf_core::data::layouts::Layout;
+use gdrf_core::data::synth::{self, Category, Metadata, SynthOptions};
+use gdrf_core::data::{self, CacheStatus, DataConfig, LoadOptions, Prepared};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
 
-/// Train a GDRF generator on an image collection (coming with the training issue).
+/// Train GDRF generators and prepare their training images.
+///
+/// Training (`--config`) is not implemented yet. The `dataset` commands generate the
+/// built-in procedural dataset, render shape/appearance swaps from it, and load image
+/// collections (folders, the authors' layouts) into the training-resolution cache.
+/// See docs/datasets.md.
 #[derive(Parser)]
-#[command(version, about, long_about = None)]
-struct Args {}
+#[command(version, about, long_about)]
+struct Cli {
+    /// Training configuration (TOML). Training is not implemented yet.
+    #[arg(long, value_name = "TOML")]
+    config: Option<PathBuf>,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Procedural datasets and image collections.
+    #[command(subcommand)]
+    Dataset(DatasetCommand),
+}
+
+#[derive(Subcommand)]
+enum DatasetCommand {
+    /// Render a procedural dataset: images/*.png, metadata.json (pose, shape and
+    /// appearance parameters, seed, split per image) and camera_param.json.
+    Synth(SynthArgs),
+    /// Render "the shape of object I with the appearance of object J" from a generated dataset.
+    Swap(SwapArgs),
+    /// Load a dataset folder (any layout) at a training resolution, fill its cache, and
+    /// report the image count, poses and images/second.
+    Inspect(InspectArgs),
+    /// Generate (if needed) and load the dataset named by a training config's [data] table.
+    Prepare(PrepareArgs),
+}
+
+#[derive(Args)]
+struct SynthArgs {
+    /// Object category: chairs or tables.
+    #[arg(long, default_value = "chairs")]
+    category: Category,
+    /// Number of images.
+    #[arg(long)]
+    count: usize,
+    /// Image side in pixels (64 and 128 are the training resolutions).
+    #[arg(long)]
+    resolution: usize,
+    /// Output folder (created; must not already hold a dataset unless --force).
+    #[arg(long)]
+    out: PathBuf,
+    /// Dataset seed: the same seed and options give byte-identical images.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Antialiasing: K × K samples per pixel.
+    #[arg(long, default_value_t = 3)]
+    supersample: usize,
+    /// Views rendered of each object.
+    #[arg(long, default_value_t = 1)]
+    views_per_object: usize,
+    /// Fraction of objects held out of training (all their views).
+    #[arg(long, default_value_t = 0.1)]
+    held_out: f64,
+    /// Turn off soft shadows (faster).
+    #[arg(long)]
+    no_shadows: bool,
+    /// Camera preset for field of view, ray range and pose distribution.
+    #[arg(long, default_value = "chair", value_parser = ["chair", "car", "carla"])]
+    camera: String,
+    /// Worker threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Also write contact-sheet.png: 64 random images in an 8 × 8 grid.
+    #[arg(long)]
+    contact_sheet: bool,
+    /// Replace a dataset already in --out.
+    #[arg(long)]
+    force: bool,
+}
+
+#[derive(Args)]
+struct SwapArgs {
+    /// A folder written by `gdrf-train dataset synth`.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Object whose shape is rendered.
+    #[arg(long)]
+    shape_from: usize,
+    /// Object whose materials are used.
+    #[arg(long)]
+    appearance_from: usize,
+    /// Camera pitch φ in radians (polar angle from +y); default: the shape object's pose.
+    #[arg(long, requires = "yaw", allow_negative_numbers = true)]
+    pitch: Option<f64>,
+    /// Camera yaw θ in radians.
+    #[arg(long, requires = "pitch", allow_negative_numbers = true)]
+    yaw: Option<f64>,
+    /// Image side (default: the dataset's).
+    #[arg(long)]
+    resolution: Option<usize>,
+    /// Samples per pixel per axis (default: the dataset's).
+    #[arg(long)]
+    supersample: Option<usize>,
+    /// Output PNG (RGBA).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct InspectArgs {
+    /// Dataset folder.
+    dir: PathBuf,
+    /// auto, folder, camera_param, carla or synth.
+    #[arg(long, default_value = "auto")]
+    layout: Layout,
+    /// Pose file (folder layout: camera_param-format JSON) or CARLA pose folder.
+    #[arg(long)]
+    poses: Option<PathBuf>,
+    /// Training resolution to decode and cache at.
+    #[arg(long, default_value_t = 64)]
+    resolution: usize,
+    /// Fail if the dataset has no poses.
+    #[arg(long)]
+    require_poses: bool,
+    /// Skip bad files with a warning instead of stopping at the first.
+    #[arg(long)]
+    skip_bad: bool,
+    /// Synthetic datasets: train, held_out or all.
+    #[arg(long, default_value = "all", value_parser = ["train", "held_out", "all"])]
+    split: String,
+    /// Neither read nor write the cache.
+    #[arg(long)]
+    no_cache: bool,
+    /// Decoding threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Write a contact sheet of 64 random images to this PNG.
+    #[arg(long)]
+    contact_sheet: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct PrepareArgs {
+    /// Training config with a [data] table (other tables are ignored here).
+    #[arg(long)]
+    config: PathBuf,
+    /// Training resolution to load at.
+    #[arg(long, default_value_t = 64)]
+    resolution: usize,
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
 
 fn main() {
-    let _ = Args::parse();
-    eprintln!("gdrf-train is not implemented yet; see --help.");
-    std::process::exit(2);
+    let cli = Cli::parse();
+    let result = match (cli.command, cli.config) {
+        (Some(Command::Dataset(cmd)), None) => dataset(cmd),
+        (Some(_), Some(_)) => Err(anyhow::anyhow!("--config cannot be combined with a subcommand")),
+        (None, Some(config)) => Err(anyhow::anyhow!(
+            "{}: training is not implemented yet (its data can be prepared with `gdrf-train dataset prepare --config {}`)",
+            config.display(),
+            config.display()
+        )),
+        (None, None) => Err(anyhow::anyhow!("nothing to do; see `gdrf-train --help`")),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(2);
+    }
+}
+
+fn dataset(cmd: DatasetCommand) -> Result<()> {
+    match cmd {
+        DatasetCommand::Synth(a) => synth_cmd(a),
+        DatasetCommand::Swap(a) => swap_cmd(a),
+        DatasetCommand::Inspect(a) => inspect_cmd(a),
+        DatasetCommand::Prepare(a) => prepare_cmd(a),
+    }
+}
+
+fn bar(n: usize, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(n as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
+            .expect("static template")
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    pb
+}
+
+fn synth_cmd(a: SynthArgs) -> Result<()> {
+    if a.out.join(synth::METADATA_FILE).exists() && !a.force {
+        bail!("{} already holds a dataset (metadata.json); pass --force to replace it", a.out.display());
+    }
+    let camera = match a.camera.as_str() {
+        "car" => CameraConfig::car(),
+        "carla" => CameraConfig::carla(),
+        _ => CameraConfig::chair(),
+    };
+    let opts = SynthOptions {
+        category: a.category,
+        count: a.count,
+        resolution: a.resolution,
+        seed: a.seed,
+        supersample: a.supersample,
+        views_per_object: a.views_per_object,
+        held_out_fraction: a.held_out,
+        shadows: !a.no_shadows,
+        camera,
+    };
+    opts.validate().context("invalid `dataset synth` options")?;
+    let threads = data::thread_count(a.threads);
+    let pb = bar(a.count, &format!("rendering {} ({threads} threads)", a.category.name()));
+    let start = Instant::now();
+    let meta = synth::generate(&a.out, &opts, threads, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    let secs = start.elapsed().as_secs_f64();
+    let held = meta.images.iter().filter(|r| r.split == synth::Split::HeldOut).count();
+    println!(
+        "wrote {} images of {}×{} to {} in {:.1} s ({:.1} images/s, {} threads); {} held out",
+        meta.images.len(),
+        a.resolution,
+        a.resolution,
+        a.out.display(),
+        secs,
+        meta.images.len() as f64 / secs,
+        threads,
+        held
+    );
+    if a.contact_sheet {
+        let path = a.out.join("contact-sheet.png");
+        write_contact_sheet(&a.out, Layout::Synth, a.resolution, &path)?;
+        println!("contact sheet: {}", path.display());
+    }
+    Ok(())
+}
+
+/// 64 random images of a dataset (decoded without touching its cache) in an 8 × 8 grid.
+fn write_contact_sheet(dir: &Path, layout: Layout, res: usize, out: &Path) -> Result<()> {
+    let mut opts = LoadOptions::new(res);
+    opts.layout = layout;
+    opts.cache = false;
+    let ds = data::load(dir, &opts, &|| {})?;
+    save_sheet(&ds, out)
+}
+
+fn save_sheet(ds: &data::Dataset, out: &Path) -> Result<()> {
+    let idx = data::sample_indices(ds.len(), 64, 0);
+    let sheet = data::contact_sheet(&ds.images(), &idx, 8)?;
+    gdrf_core::io::save_png(out, &sheet)?;
+    Ok(())
+}
+
+fn swap_cmd(a: SwapArgs) -> Result<()> {
+    let meta = Metadata::load(&a.dataset)?;
+    let pose = a.pitch.zip(a.yaw);
+    let img = synth::render_swap(&meta, a.shape_from, a.appearance_from, pose, a.resolution, a.supersample)?;
+    let bytes = synth::encode_png(img.to_rgba8(), img.resolution)?;
+    gdrf_core::checkpoint::write_atomic(&a.out, &bytes)?;
+    println!(
+        "wrote {}: shape of object {} with the appearance of object {}",
+        a.out.display(),
+        a.shape_from,
+        a.appearance_from
+    );
+    Ok(())
+}
+
+fn inspect_cmd(a: InspectArgs) -> Result<()> {
+    let mut opts = LoadOptions::new(a.resolution);
+    opts.layout = a.layout;
+    opts.poses = a.poses;
+    opts.require_poses = a.require_poses;
+    opts.skip_bad = a.skip_bad;
+    opts.split = match a.split.as_str() {
+        "train" => Some(synth::Split::Train),
+        "held_out" => Some(synth::Split::HeldOut),
+        _ => None,
+    };
+    opts.cache = !a.no_cache;
+    opts.threads = a.threads;
+    let ds = load_reporting(&a.dir, &opts)?;
+    if let Some(path) = a.contact_sheet {
+        save_sheet(&ds, &path)?;
+        println!("contact sheet: {}", path.display());
+    }
+    Ok(())
+}
+
+/// Loads with a progress bar and prints what was loaded, skipped and how fast.
+fn load_reporting(dir: &Path, opts: &LoadOptions) -> Result<data::Dataset> {
+    let pb = ProgressBar::new_spinner();
+    pb.set_style(ProgressStyle::with_template("{spinner} decoding {pos} images ({per_sec})").expect("static template"));
+    let start = Instant::now();
+    let ds = data::load(dir, opts, &|| {
+        pb.inc(1);
+    })
+    .with_context(|| format!("loading {}", dir.display()))?;
+    pb.finish_and_clear();
+    let secs = start.elapsed().as_secs_f64();
+    for s in &ds.skipped {
+        eprintln!("warning: skipped {}: {}", s.path.display(), s.reason);
+    }
+    if !ds.skipped.is_empty() {
+        eprintln!("warning: {} file(s) skipped", ds.skipped.len());
+    }
+    let source = match &ds.cache {
+        CacheStatus::Hit(p) => format!("read from cache {}", p.display()),
+        CacheStatus::Decoded(Some(p)) => format!("decoded, cached in {}", p.display()),
+        CacheStatus::Decoded(None) => "decoded (cache off)".into(),
+        CacheStatus::WriteFailed(p, e) => {
+            eprintln!("warning: could not write the cache {}: {e}", p.display());
+            "decoded (not cached)".into()
+        }
+    };
+    println!(
+        "{}: {} images at {}×{} ({} layout), poses: {}; {source}; {:.2} s, {:.0} images/s",
+        dir.display(),
+        ds.len(),
+        ds.resolution,
+        ds.resolution,
+        ds.layout.name(),
+        if ds.poses.is_some() { "yes" } else { "no" },
+        secs,
+        ds.len() as f64 / secs
+    );
+    Ok(ds)
+}
+
+fn prepare_cmd(a: PrepareArgs) -> Result<()> {
+    #[derive(serde::Deserialize)]
+    struct Config {
+        data: DataConfig,
+    }
+    let text = std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?;
+    let cfg: Config = toml::from_str(&text).with_context(|| format!("{}: invalid [data] table", a.config.display()))?;
+    let mut data_cfg = cfg.data;
+    // Relative paths are relative to the config file's folder.
+    let base = a.config.parent().unwrap_or(Path::new("."));
+    data_cfg.path = base.join(&data_cfg.path);
+    data_cfg.poses = data_cfg.poses.map(|p| base.join(p));
+    data_cfg.cache_dir = data_cfg.cache_dir.map(|p| base.join(p));
+    let count = data_cfg.synth.as_ref().map_or(0, |s| s.count);
+    let pb = bar(count, "generating");
+    let prepared = data_cfg.prepare(a.threads, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    if prepared == Prepared::Generated {
+        println!("generated the synthetic dataset in {}", data_cfg.path.display());
+    }
+    load_reporting(&data_cfg.path, &data_cfg.load_options(a.resolution, a.threads))?;
+    Ok(())
 }
