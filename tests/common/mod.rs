@@ -107,7 +107,7 @@ impl Report {
         for (n, e) in &self.rows {
             println!("  {n:<36} {e:.3e}{}", if *e > self.tol { "   FAIL" } else { "" });
         }
-        let bad: Vec<_> = self.rows.iter().filter(|(_, e)| !(*e <= self.tol)).collect();
+        let bad: Vec<_> = self.rows.iter().filter(|(_, e)| e.is_nan() || *e > self.tol).collect();
         assert!(bad.is_empty(), "{}: components above tolerance: {bad:?}", self.title);
     }
 }

@@ -216,6 +216,25 @@ impl<'a> Renderer<'a> {
         })
     }
 
+    /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
+    /// where autograd is enabled); the result equals one [`Self::render_rays`] call.
+    pub fn render_rays_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+        let (b, r) = (rays.dirs.size()[0], rays.num_rays());
+        let per_ray = self.config.samples_per_ray() as i64;
+        let chunk = (self.config.chunk_points as i64 / (per_ray * b)).max(1);
+        if chunk >= r {
+            return self.render_rays(latents, rays, noise);
+        }
+        let mut parts = Vec::new();
+        let mut start = 0;
+        while start < r {
+            let len = chunk.min(r - start);
+            parts.push(self.render_rays(latents, &rays.narrow(start, len), &noise.slice(0, b, start, len))?);
+            start += len;
+        }
+        Ok(RenderedRays::concat(&parts))
+    }
+
     /// Training render of `res × res` images split into `regions` horizontal bands rendered
     /// one after the other (the release's patch mode; with gradients). Returns the images
     /// `(B, 3, H, W)` in [−1, 1] and each band's per-ray results.
@@ -237,7 +256,7 @@ impl<'a> Renderer<'a> {
         let b = poses.len();
         let len = r / regions;
         let parts = (0..regions)
-            .map(|k| self.render_rays(latents, &rays.narrow(k * len, len), &noise.slice(0, b, k * len, len)))
+            .map(|k| self.render_rays_chunked(latents, &rays.narrow(k * len, len), &noise.slice(0, b, k * len, len)))
             .collect::<Result<Vec<_>>>()?;
         let pixels: Vec<&Tensor> = parts.iter().map(|p| &p.pixel).collect();
         let img = Tensor::cat(&pixels, 1).permute([0, 2, 1]).reshape([b, 3, res, res]) * 2.0 - 1.0;
