@@ -44,7 +44,7 @@ fn zero_grads(vs: &nn::VarStore) {
     for (_, mut v) in vs.variables() {
         let g = v.grad();
         if g.defined() {
-            let _ = v.zero_grad();
+            v.zero_grad();
         }
     }
 }

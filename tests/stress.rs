@@ -190,7 +190,7 @@ fn regularisers_at_the_exact_initial_state() {
         assert!(all_grads_finite(&vs), "{variant:?}: non-finite gradient at the initial state");
         for (_, mut v) in vs.variables() {
             if v.grad().defined() {
-                let _ = v.zero_grad();
+                v.zero_grad();
             }
         }
     }
@@ -213,7 +213,7 @@ fn saturated_discriminator_and_wrapped_poses() {
     let d = Discriminator::new(&vs.root());
     tch::no_grad(|| {
         let h = d.head.weight.shallow_clone();
-        let _ = h.shallow_clone().copy_(&(h * 1e5));
+        h.shallow_clone().copy_(&(h * 1e5));
     });
     let real = (Tensor::rand([2, 3, 16, 16], (Kind::Float, CPU)) * 2.0 - 1.0).set_requires_grad(true);
     let o = d.forward(&real, 1.0).unwrap();
@@ -309,7 +309,7 @@ fn gradcheck(vs: &nn::VarStore, names: &[&str], f: &dyn Fn() -> Tensor, what: &s
     let vars = vs.variables();
     for (_, mut v) in vs.variables() {
         if v.grad().defined() {
-            let _ = v.zero_grad();
+            v.zero_grad();
         }
     }
     f().backward();
@@ -325,8 +325,7 @@ fn gradcheck(vs: &nn::VarStore, names: &[&str], f: &dyn Fn() -> Tensor, what: &s
                 tch::no_grad(|| {
                     let _ = flat.get(k).fill_(x);
                 });
-                let y = tch::no_grad(f).double_value(&[]);
-                y
+                tch::no_grad(f).double_value(&[])
             };
             let fd = (at(orig + eps) - at(orig - eps)) / (2.0 * eps);
             at(orig);

@@ -102,7 +102,7 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
     let zero = |vs: &nn::VarStore| {
         for (_, mut v) in vs.variables() {
             if v.grad().defined() {
-                let _ = v.zero_grad();
+                v.zero_grad();
             }
         }
     };
