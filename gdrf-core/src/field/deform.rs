@@ -38,10 +38,8 @@ impl DeformField {
             h = layer.forward(&h, &g, &b);
         }
         let out = self.head.forward(&h);
-        let mut dx = out.narrow(-1, 0, 3);
-        if self.deform_scale != 1.0 {
-            dx = dx * self.deform_scale;
-        }
+        let raw = out.narrow(-1, 0, 3);
+        let dx = if self.deform_scale == 1.0 { raw } else { raw * self.deform_scale };
         (dx, out.narrow(-1, 3, 1) * self.correct_scale)
     }
 }
