@@ -123,7 +123,7 @@ impl Discriminator {
         }
         let start = Self::start_index(size)?;
         let mut x = leaky_relu(&self.from_rgb[start].forward(img));
-        for (i, layer) in self.layers[start.min(8)..].iter().enumerate() {
+        for (i, layer) in self.layers[start..].iter().enumerate() {
             if i == 1 && alpha < 1.0 {
                 let skip = leaky_relu(&self.from_rgb[start + 1].forward(&downsample_aa(img)));
                 x = x * alpha + skip * (1.0 - alpha);

@@ -75,7 +75,6 @@ pub fn select_samples(r: &RenderedRays, cfg: &RegConfig, ray_idx: Option<&Tensor
         let (b, rays, s) = (r.z.size()[0], r.z.size()[1], r.z.size()[2]);
         let z = r.z.detach();
         let depth = r.depth.detach();
-        let pts = r.points().detach();
         match cfg.variant {
             RegVariant::Release => {
                 let n = reg_ray_count(rays, cfg);
@@ -85,8 +84,11 @@ pub fn select_samples(r: &RenderedRays, cfg: &RegConfig, ray_idx: Option<&Tensor
                 };
                 let z_sel = z.gather(1, &idx.unsqueeze(-1).expand([b, n, s], false), false);
                 let d_sel = depth.gather(1, &idx.unsqueeze(-1), false);
-                let p_sel = pts.gather(1, &idx.view([b, n, 1, 1]).expand([b, n, s, 3], false), false);
-                let order = (z_sel - d_sel).abs().argsort(-1, false);
+                // Points of the drawn rays only (5 % of the image).
+                let ray3 = idx.unsqueeze(-1).expand([b, n, 3], false);
+                let (o_sel, dir_sel) = (r.origins.gather(1, &ray3, false), r.dirs.gather(1, &ray3, false));
+                let p_sel = o_sel.unsqueeze(2) + dir_sel.unsqueeze(2) * z_sel.unsqueeze(-1);
+                let order = (&z_sel - d_sel).abs().argsort(-1, false);
                 let k = ((cfg.near_ratio * s as f64).round() as i64).clamp(1, s);
                 let take = |o: Tensor| {
                     let m = o.size()[2];
@@ -99,7 +101,8 @@ pub fn select_samples(r: &RenderedRays, cfg: &RegConfig, ray_idx: Option<&Tensor
                 let dist = (z - depth).abs().view([b, rays * s]);
                 let k = ((cfg.sample_ratio * (rays * s) as f64).round() as i64).clamp(1, rays * s);
                 let idx = dist.topk(k, 1, false, true).1;
-                let near = pts.view([b, rays * s, 3]).gather(1, &idx.unsqueeze(-1).expand([b, k, 3], false), false);
+                let pts = r.points().detach().view([b, rays * s, 3]);
+                let near = pts.gather(1, &idx.unsqueeze(-1).expand([b, k, 3], false), false);
                 RegSamples { near, rest: None }
             }
         }

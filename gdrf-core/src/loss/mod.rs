@@ -8,7 +8,7 @@ pub mod gan;
 use crate::camera::Poses;
 use crate::disc::Discriminator;
 use crate::render::{Noise, RenderedRays, Renderer};
-use crate::{Latents, Result};
+use crate::{Error, Latents, Result};
 use deform_reg::{regularisers, select_samples, RegConfig};
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
@@ -42,6 +42,21 @@ impl Default for LossConfig {
             topk_floor: 0.6,
             reg: RegConfig::default(),
         }
+    }
+}
+
+impl LossConfig {
+    pub fn validate(&self) -> Result<()> {
+        if self.r1_interval < 1 {
+            return Err(Error::Config(format!("loss.r1_interval is {}, expected at least 1", self.r1_interval)));
+        }
+        if !(self.topk_interval > 0.0 && (0.0..=1.0).contains(&self.topk_floor)) {
+            return Err(Error::Config(format!(
+                "loss.topk_interval {} must be positive and loss.topk_floor {} in [0, 1]",
+                self.topk_interval, self.topk_floor
+            )));
+        }
+        Ok(())
     }
 }
 
@@ -93,6 +108,7 @@ pub fn generator_loss(
     cfg: &LossConfig,
     reg_rays: Option<&Tensor>,
 ) -> Result<Losses> {
+    cfg.validate()?;
     let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
     let d = disc.forward(&img, at.alpha)?;
     let b = img.size()[0];
@@ -133,8 +149,9 @@ pub fn discriminator_loss(
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
+    cfg.validate()?;
     let fakes = tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?.0;
-    let r1_now = cfg.r1_gamma != 0.0 && at.step % cfg.r1_interval.max(1) == 0;
+    let r1_now = cfg.r1_gamma != 0.0 && at.step % cfg.r1_interval == 0;
     let real = if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(r1_now) };
     let dr = disc.forward(&real, at.alpha)?;
     let df = disc.forward(&fakes.detach(), at.alpha)?;
@@ -146,7 +163,7 @@ pub fn discriminator_loss(
     let mut terms = vec![("d_real", d_real), ("d_fake", d_fake)];
     if r1_now {
         let r1 = gan::r1_penalty(&dr.logit, &real)?;
-        total = total + &r1 * (cfg.r1_gamma * cfg.r1_interval.max(1) as f64);
+        total = total + &r1 * (cfg.r1_gamma * cfg.r1_interval as f64);
         terms.push(("d_r1", r1));
     }
     terms.extend([("d_pose_fake", pose_fake), ("d_pose_real", pose_real)]);
@@ -165,6 +182,14 @@ mod tests {
     use super::*;
     use crate::{CameraConfig, Generator, GeneratorConfig, RenderConfig};
     use tch::{nn, Device, Kind};
+
+    #[test]
+    fn bad_loss_settings_are_named() {
+        let e = LossConfig { r1_interval: 0, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("r1_interval"), "{e}");
+        assert!(LossConfig { topk_floor: 1.5, ..Default::default() }.validate().is_err());
+        LossConfig::default().validate().unwrap();
+    }
 
     #[test]
     fn lazy_r1_applies_every_k_steps_scaled_by_k() {

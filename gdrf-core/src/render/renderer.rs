@@ -183,32 +183,18 @@ impl<'a> Renderer<'a> {
     /// any resolution fits in bounded memory.
     pub fn render_image(&self, latents: &Latents, poses: &Poses, res: i64, noise: &Noise) -> Result<Image> {
         let rays = Rays::from_poses(poses, res, self.camera.fov_deg);
-        let b = poses.len();
-        let r = res * res;
-        let per_ray = self.config.samples_per_ray() as i64;
-        let chunk = (self.config.chunk_points as i64 / per_ray).max(1);
-        let mut pix = Vec::new();
-        let mut depth = Vec::new();
-        let mut opacity = Vec::new();
+        let (b, r) = (poses.len(), res * res);
+        let (mut pix, mut depth, mut opacity) = (Vec::new(), Vec::new(), Vec::new());
         tch::no_grad(|| -> Result<()> {
             for i in 0..b {
-                let lat = latents.narrow(i, 1);
-                let img_rays = rays.narrow_batch(i, 1);
-                let mut start = 0;
-                while start < r {
-                    let len = chunk.min(r - start);
-                    let out = self.render_rays(&lat, &img_rays.narrow(start, len), &noise.slice(i, 1, start, len))?;
-                    pix.push(out.pixel);
-                    depth.push(out.depth);
-                    opacity.push(out.opacity);
-                    start += len;
-                }
+                let out = self.render_rays_chunked(&latents.narrow(i, 1), &rays.narrow_batch(i, 1), &noise.slice(i, 1, 0, r))?;
+                pix.push(out.pixel);
+                depth.push(out.depth);
+                opacity.push(out.opacity);
             }
             Ok(())
         })?;
-        let to_image = |parts: &[Tensor], c: i64| {
-            Tensor::cat(parts, 1).view([b, r, c]).permute([0, 2, 1]).reshape([b, c, res, res])
-        };
+        let to_image = |parts: &[Tensor], c: i64| Tensor::cat(parts, 0).permute([0, 2, 1]).reshape([b, c, res, res]);
         Ok(Image {
             rgb: to_image(&pix, 3) * 2.0 - 1.0,
             depth: to_image(&depth, 1),
