@@ -10,7 +10,8 @@ use gdrf_core::field::generator::Generator;
 use gdrf_core::loss::deform_reg::{
     density_gradient, normal_distance, regularisers, RegConfig, RegSamples, RegVariant,
 };
-use gdrf_core::loss::{discriminator_loss, gan, generator_loss, FakeBatch, LossConfig, Schedule};
+use gdrf_core::loss::{gan, LossConfig, Schedule};
+use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::nn::film::FilmLayer;
 use gdrf_core::nn::siren::SineLayer;
 use gdrf_core::nn::WeightInit;
@@ -282,8 +283,8 @@ fn float32_against_float64() {
         let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
         let at = Schedule { step: 0, alpha: 1.0 };
         let lc = LossConfig::default();
-        let gl = generator_loss(&r, d, &fake, at, &lc, Some(&reg_rays)).unwrap();
-        let dl = discriminator_loss(&r, d, &real.to_kind(kind), &real_pose.to_kind(kind), &fake, at, &lc).unwrap();
+        let gl = generator_pass(&r, d, &fake, Some(&reg_rays), at, &lc).unwrap();
+        let dl = discriminator_pass(&r, d, &real.to_kind(kind), Some(&real_pose.to_kind(kind)), &fake, at, &lc).unwrap();
         let mut terms = gl.terms;
         terms.extend(dl.terms);
         results.push((img.rgb, img.depth, terms));

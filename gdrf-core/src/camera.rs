@@ -1,6 +1,7 @@
 //! Camera poses, their distributions, look-at and ray generation (the release's pi-GAN
 //! conventions: camera on the unit sphere looking at the origin, OpenGL axes).
 use crate::config::{CameraConfig, PoseDistribution};
+use crate::rng::{RandomSource, TorchRng};
 use std::f64::consts::PI;
 use tch::{Device, Kind, Tensor};
 
@@ -21,29 +22,33 @@ impl Poses {
         Self { pitch: col(&p), yaw: col(&y) }
     }
 
-    /// Draws `n` poses from the configured distribution (the release's sampling path,
-    /// which clamps φ to [1e-5, π − 1e-5]).
+    /// Draws `n` poses from the configured distribution with libtorch's generator (the
+    /// release's sampling path, which clamps φ to [1e-5, π − 1e-5]).
     pub fn sample(cam: &CameraConfig, n: i64, kind: Kind, device: Device) -> Self {
-        let opts = (kind, device);
-        let sym = || (Tensor::rand([n, 1], opts) - 0.5) * 2.0;
+        Self::sample_from(cam, n, &mut TorchRng { kind, device })
+    }
+
+    /// Draws `n` poses from the configured distribution with the numbers of `src`.
+    pub fn sample_from(cam: &CameraConfig, n: i64, src: &mut dyn RandomSource) -> Self {
+        let mut sym = || (src.uniform(&[n, 1]) - 0.5) * 2.0;
         let (yaw, pitch) = match cam.distribution {
             PoseDistribution::Uniform => {
                 let yaw = sym() * cam.h_std + cam.h_mean;
                 (yaw, sym() * cam.v_std + cam.v_mean)
             }
             PoseDistribution::Normal => {
-                let yaw = Tensor::randn([n, 1], opts) * cam.h_std + cam.h_mean;
-                (yaw, Tensor::randn([n, 1], opts) * cam.v_std + cam.v_mean)
+                let yaw = src.normal(&[n, 1]) * cam.h_std + cam.h_mean;
+                (yaw, src.normal(&[n, 1]) * cam.v_std + cam.v_mean)
             }
             PoseDistribution::SphericalUniform => {
                 let yaw = sym() * cam.h_std + cam.h_mean;
                 let v = (sym() * (cam.v_std / PI) + cam.v_mean / PI).clamp(1e-5, 1.0 - 1e-5);
                 (yaw, (v * -2.0 + 1.0).acos())
             }
-            PoseDistribution::Fixed => (
-                Tensor::full([n, 1], cam.h_mean, opts),
-                Tensor::full([n, 1], cam.v_mean, opts),
-            ),
+            PoseDistribution::Fixed => {
+                let like = src.uniform(&[n, 1]);
+                (like.full_like(cam.h_mean), like.full_like(cam.v_mean))
+            }
         };
         Self { pitch: pitch.clamp(1e-5, PI - 1e-5), yaw }
     }

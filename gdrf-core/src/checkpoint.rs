@@ -14,14 +14,18 @@ use tch::{nn, Device, Kind, Tensor};
 
 /// Metadata key holding the JSON header.
 pub const HEADER_KEY: &str = "gdrf";
-pub const FORMAT_VERSION: u32 = 1;
+/// 2: adds the training state (`model = "training_state"`, the `training` header) and
+/// refuses non-finite tensors. Version 1 files (generators) still load.
+pub const FORMAT_VERSION: u32 = 2;
 
 /// The JSON header of a generator checkpoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Header {
     pub format_version: u32,
-    /// What the tensors are: `"generator"`.
+    /// What the tensors are: `"generator"`, or `"training_state"` (generator, EMA and
+    /// discriminator parameters and both optimisers' moments, under the prefixes
+    /// `generator.`, `ema.`, `discriminator.`, `adam_g.`, `adam_d.`).
     pub model: String,
     pub generator: GeneratorConfig,
     /// The camera the model was trained with, when known.
@@ -30,11 +34,22 @@ pub struct Header {
     /// Free-form provenance (training step, converter, …).
     #[serde(default)]
     pub info: BTreeMap<String, String>,
+    /// Training state: step, stage, counters and the whole resolved training config
+    /// (training checkpoints only; its schema belongs to [`crate::train`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub training: Option<serde_json::Value>,
 }
 
 impl Header {
     pub fn generator(generator: GeneratorConfig, camera: Option<CameraConfig>) -> Self {
-        Self { format_version: FORMAT_VERSION, model: "generator".into(), generator, camera, info: BTreeMap::new() }
+        Self {
+            format_version: FORMAT_VERSION,
+            model: "generator".into(),
+            generator,
+            camera,
+            info: BTreeMap::new(),
+            training: None,
+        }
     }
 }
 
@@ -78,10 +93,22 @@ fn dtype_of(kind: Kind) -> Result<Dtype> {
     }
 }
 
-/// Serialises named tensors and the header to safetensors bytes.
+/// Whether every element of a floating-point tensor is finite (other kinds always are).
+pub fn is_finite(t: &Tensor) -> bool {
+    match t.kind() {
+        Kind::Float | Kind::Double | Kind::Half | Kind::BFloat16 => bool::try_from(t.isfinite().all()).unwrap_or(false),
+        _ => true,
+    }
+}
+
+/// Serialises named tensors and the header to safetensors bytes. A tensor with a NaN or
+/// an infinity is an error naming it: such a checkpoint is never written.
 pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>> {
     let mut data = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
+        if !is_finite(t) {
+            return Err(Error::Invalid(format!("tensor '{name}' holds NaN or infinite values; refusing to write a checkpoint")));
+        }
         let t = t.detach().to_device(Device::Cpu).contiguous();
         let mut buf = vec![0u8; t.numel() * t.kind().elt_size_in_bytes()];
         t.f_copy_data_u8(&mut buf, t.numel())?;
@@ -148,7 +175,11 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
             d => return Err(Error::DType { path: path.to_path_buf(), name, found: format!("{d:?}") }),
         };
         let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
-        tensors.insert(name, Tensor::from_data_size(view.data(), &shape, kind));
+        let t = Tensor::from_data_size(view.data(), &shape, kind);
+        if !is_finite(&t) {
+            return Err(not(format!("tensor '{name}' holds NaN or infinite values")));
+        }
+        tensors.insert(name, t);
     }
     Ok(Checkpoint { path: path.to_path_buf(), header, tensors })
 }
@@ -204,14 +235,24 @@ pub fn save_generator(path: &Path, vs: &nn::VarStore, header: &Header) -> Result
     save(path, &tensors, header)
 }
 
-/// Loads a generator checkpoint onto `device` in `kind` (Float or Double).
+/// Loads a generator checkpoint onto `device` in `kind` (Float or Double). A training
+/// checkpoint gives its EMA generator (what samples and evaluation use).
 pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedGenerator> {
-    let ckpt = load(path)?;
-    if ckpt.header.model != "generator" {
-        return Err(Error::NotACheckpoint {
-            path: path.to_path_buf(),
-            reason: format!("it holds a '{}', not a generator", ckpt.header.model),
-        });
+    let mut ckpt = load(path)?;
+    match ckpt.header.model.as_str() {
+        "generator" => {}
+        "training_state" => {
+            ckpt.tensors = std::mem::take(&mut ckpt.tensors)
+                .into_iter()
+                .filter_map(|(n, t)| n.strip_prefix("ema.").map(|n| (n.to_string(), t)))
+                .collect();
+        }
+        other => {
+            return Err(Error::NotACheckpoint {
+                path: path.to_path_buf(),
+                reason: format!("it holds a '{other}', not a generator"),
+            })
+        }
     }
     let mut vs = nn::VarStore::new(device);
     let generator = Generator::new(&vs.root(), &ckpt.header.generator)?;
@@ -243,5 +284,32 @@ mod tests {
             assert!(t.equal(&a[&name]), "{name}");
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn non_finite_tensors_are_never_written_nor_loaded() {
+        let dir = std::env::temp_dir().join(format!("gdrf-ckpt-nan-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("bad.safetensors");
+        let header = Header::generator(GeneratorConfig::default(), None);
+        let bad = Tensor::from_slice(&[1.0f32, f32::NAN]);
+        let e = save(&path, &[("w".into(), bad)], &header).unwrap_err().to_string();
+        assert!(e.contains("'w'") && e.contains("NaN"), "{e}");
+        assert!(!path.exists());
+        // A file holding an infinity (written by another tool) is refused on load.
+        let inf = Tensor::from_slice(&[f32::INFINITY]);
+        let views = [("v".to_string(), TensorView::new(Dtype::F32, vec![1], bytemuck_f32(&inf)).unwrap())];
+        let json = serde_json::to_string(&header).unwrap();
+        let bytes = safetensors::serialize(views, Some(HashMap::from([(HEADER_KEY.to_string(), json)]))).unwrap();
+        write_atomic(&path, &bytes).unwrap();
+        let e = load(&path).unwrap_err().to_string();
+        assert!(e.contains("'v'") && e.contains("infinite"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    fn bytemuck_f32(t: &Tensor) -> &'static [u8] {
+        let mut buf = vec![0u8; t.numel() * 4];
+        t.copy_data_u8(&mut buf, t.numel());
+        Box::leak(buf.into_boxed_slice())
     }
 }

@@ -2,10 +2,29 @@
 use crate::{Error, Result};
 use tch::Device;
 
+/// Checks that `request` is one of `auto`, `cpu`, `cuda`, `gpu` or `cuda:N` without
+/// asking libtorch which devices exist (config validation on any machine).
+pub fn select_syntax(request: &str) -> Result<()> {
+    parse(request).map(|_| ())
+}
+
 /// Parses `auto`, `cpu`, `cuda` or `cuda:N`. `auto` picks CUDA device 0 when libtorch
 /// sees one. Asking for CUDA on a machine without it is an error, not a silent fallback.
 pub fn select(request: &str) -> Result<Device> {
-    let device = match request.trim().to_ascii_lowercase().as_str() {
+    let device = parse(request)?;
+    if let Device::Cuda(i) = device {
+        let n = tch::Cuda::device_count() as usize;
+        if i >= n {
+            return Err(Error::Invalid(format!(
+                "device '{request}': libtorch sees {n} CUDA device(s)"
+            )));
+        }
+    }
+    Ok(device)
+}
+
+fn parse(request: &str) -> Result<Device> {
+    Ok(match request.trim().to_ascii_lowercase().as_str() {
         "auto" => Device::cuda_if_available(),
         "cpu" => Device::Cpu,
         "cuda" | "gpu" => Device::Cuda(0),
@@ -17,16 +36,7 @@ pub fn select(request: &str) -> Result<Device> {
                 )))
             }
         },
-    };
-    if let Device::Cuda(i) = device {
-        let n = tch::Cuda::device_count() as usize;
-        if i >= n {
-            return Err(Error::Invalid(format!(
-                "device '{request}': libtorch sees {n} CUDA device(s)"
-            )));
-        }
-    }
-    Ok(device)
+    })
 }
 
 /// Uses every core the process may run on for libtorch's intra-op pool.

@@ -2,12 +2,43 @@
 //! fade-in, heads for the real/fake logit, a latent prediction and the pose (pitch, yaw).
 use crate::nn::mapping::leaky_relu;
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
 use tch::{nn, Tensor};
 
-/// Channels of fromRGB[i] (the input of layers[i]).
+/// Channels of fromRGB[i] (the input of layers[i]) in the release.
 pub const CHANNELS: [i64; 9] = [16, 32, 64, 128, 256, 400, 400, 400, 400];
 /// Width of the latent-prediction head.
 pub const LATENT_DIM: i64 = 256;
+
+/// Widths of the discriminator (default: the release's). A narrower D is what makes
+/// small CPU runs affordable: at 32² the release's D (12.5 M parameters, R1's double
+/// backward) costs a third of a training step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DiscConfig {
+    /// Channels of fromRGB[i] and of the input of layers[i], i = 0..8 (9 values; the
+    /// last is the head's input). Layer i maps channels[i] → channels[i + 1].
+    pub channels: Vec<i64>,
+}
+
+impl Default for DiscConfig {
+    fn default() -> Self {
+        Self { channels: CHANNELS.to_vec() }
+    }
+}
+
+impl DiscConfig {
+    pub fn validate(&self) -> Result<()> {
+        if self.channels.len() != CHANNELS.len() || self.channels.iter().any(|&c| c < 1) {
+            return Err(Error::Config(format!(
+                "discriminator.channels is {:?}, expected {} positive widths (one per resolution 512² … 2²)",
+                self.channels,
+                CHANNELS.len()
+            )));
+        }
+        Ok(())
+    }
+}
 
 /// A 2-D convolution with PyTorch's default initialisation (weight and bias
 /// U(±1/√fan_in), fan_in = in·k·k), which the release keeps for every conv of D.
@@ -98,11 +129,19 @@ pub struct Discriminator {
 }
 
 impl Discriminator {
+    /// The release's discriminator.
     pub fn new(vs: &nn::Path) -> Self {
-        let from_rgb = CHANNELS.iter().enumerate().map(|(i, &c)| Conv::new(vs / "from_rgb" / i, 3, c, 1, 0)).collect();
-        let layers = (0..8).map(|i| ResidualBlock::new(vs / "layers" / i, CHANNELS[i], CHANNELS[i + 1])).collect();
-        let head = Conv::new(vs / "head", CHANNELS[8], 1 + LATENT_DIM + 2, 2, 0);
-        Self { from_rgb, layers, head }
+        Self::with_config(vs, &DiscConfig::default()).expect("the release's widths are valid")
+    }
+
+    /// A discriminator of the configured widths (PyTorch's default conv init).
+    pub fn with_config(vs: &nn::Path, cfg: &DiscConfig) -> Result<Self> {
+        cfg.validate()?;
+        let c = &cfg.channels;
+        let from_rgb = c.iter().enumerate().map(|(i, &c)| Conv::new(vs / "from_rgb" / i, 3, c, 1, 0)).collect();
+        let layers = (0..8).map(|i| ResidualBlock::new(vs / "layers" / i, c[i], c[i + 1])).collect();
+        let head = Conv::new(vs / "head", c[8], 1 + LATENT_DIM + 2, 2, 0);
+        Ok(Self { from_rgb, layers, head })
     }
 
     /// Index of the first block for a `size × size` input (512 → 0, …, 64 → 3, 2 → 8).
@@ -189,6 +228,17 @@ mod tests {
             assert_eq!(o.pose.size(), [2, 2]);
         }
         assert!(d.forward(&Tensor::rand([1, 3, 48, 48], (Kind::Float, Device::Cpu)), 1.0).is_err());
+    }
+
+    #[test]
+    fn narrow_widths_work_and_bad_ones_are_named() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64] };
+        let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
+        let o = d.forward(&Tensor::rand([3, 3, 32, 32], (Kind::Float, Device::Cpu)), 0.3).unwrap();
+        assert_eq!(o.pose.size(), [3, 2]);
+        let e = Discriminator::with_config(&(&vs.root() / "x"), &DiscConfig { channels: vec![4; 8] }).unwrap_err().to_string();
+        assert!(e.contains("discriminator.channels"), "{e}");
     }
 
     #[test]

@@ -20,7 +20,10 @@ pub mod field;
 pub mod io;
 pub mod loss;
 pub mod nn;
+pub mod plot;
 pub mod render;
+pub mod rng;
+pub mod train;
 
 pub use config::{CameraConfig, GeneratorConfig, PoseDistribution, RenderConfig};
 pub use error::{Error, Result};

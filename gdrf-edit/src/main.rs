@@ -82,6 +82,10 @@ struct RenderArgs {
     /// Output PNG (the grid of images).
     #[arg(long, short, default_value = "render.png")]
     out: PathBuf,
+    /// Columns of the grid (default: --views, i.e. one row per seed). With seeds
+    /// 0,0,1,1 and appearance seeds 0,1,0,1, `--cols 2` lays out a swap matrix.
+    #[arg(long)]
+    cols: Option<i64>,
     /// Also write the normalised depth maps to this PNG.
     #[arg(long)]
     depth_out: Option<PathBuf>,
@@ -142,7 +146,7 @@ fn render(a: RenderArgs) -> Result<()> {
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
-    renderer.field = FieldOptions { no_deformation: a.no_deformation, no_correction: a.no_correction };
+    renderer.field = FieldOptions { no_deformation: a.no_deformation, no_correction: a.no_correction, ..Default::default() };
 
     let latent = generator.cfg.latent_dim as i64;
     let code = |s: i64| seeded_randn(&[1, latent], s).to_device(dev);
@@ -183,7 +187,10 @@ fn render(a: RenderArgs) -> Result<()> {
     bar.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     let rgb = Tensor::cat(&rgb, 0);
-    let cols = a.views as i64;
+    let cols = a.cols.unwrap_or(a.views as i64);
+    if cols < 1 {
+        bail!("--cols {cols}: expected at least 1");
+    }
     let img = io::to_rgb8(&io::grid(&rgb, cols), false)?;
     io::save_png(&a.out, &img).with_context(|| format!("writing --out {}", a.out.display()))?;
     if let Some(p) = &a.depth_out {

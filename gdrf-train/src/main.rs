@@ -1,5 +1,9 @@
-//! gdrf-train: datasets now (generate the procedural dataset, render swaps, inspect and
-//! cache image folders); training itself comes with the training issue.
+//! gdrf-train: train GDRF generators (`--config`, `--resume`), plot a run's losses, and
+//! prepare datasets (generate the procedural dataset, render swaps, inspect and cache
+//! image folders).
+mod plot_cmd;
+mod train_cmd;
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use gdrf_core::config::CameraConfig;
@@ -12,16 +16,18 @@ use std::time::Instant;
 
 /// Train GDRF generators and prepare their training images.
 ///
-/// Training (`--config`) is not implemented yet. The `dataset` commands generate the
-/// built-in procedural dataset, render shape/appearance swaps from it, and load image
-/// collections (folders, the authors' layouts) into the training-resolution cache.
-/// See docs/datasets.md.
+/// Training: `gdrf-train --config configs/chairs-tiny.toml` starts a run in
+/// runs/<config name>/ (checkpoints, metrics.jsonl, sample/swap/template grids, the EMA
+/// generator); Ctrl-C or SIGTERM writes a checkpoint and stops; `--resume RUN_DIR`
+/// continues exactly where it stopped. `gdrf-train plot RUN_DIR` draws the loss curves.
+/// The `dataset` commands generate the built-in procedural dataset, render
+/// shape/appearance swaps from it, and load image collections into the training cache
+/// (see docs/datasets.md).
 #[derive(Parser)]
 #[command(version, about, long_about)]
 struct Cli {
-    /// Training configuration (TOML). Training is not implemented yet.
-    #[arg(long, value_name = "TOML")]
-    config: Option<PathBuf>,
+    #[command(flatten)]
+    train: train_cmd::TrainArgs,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -31,6 +37,8 @@ enum Command {
     /// Procedural datasets and image collections.
     #[command(subcommand)]
     Dataset(DatasetCommand),
+    /// Draw a run's loss curves, gradient norms, learning rates and speed to a PNG.
+    Plot(plot_cmd::PlotArgs),
 }
 
 #[derive(Subcommand)]
@@ -165,15 +173,14 @@ struct PrepareArgs {
 
 fn main() {
     let cli = Cli::parse();
-    let result = match (cli.command, cli.config) {
-        (Some(Command::Dataset(cmd)), None) => dataset(cmd),
-        (Some(_), Some(_)) => Err(anyhow::anyhow!("--config cannot be combined with a subcommand")),
-        (None, Some(config)) => Err(anyhow::anyhow!(
-            "{}: training is not implemented yet (its data can be prepared with `gdrf-train dataset prepare --config {}`)",
-            config.display(),
-            config.display()
+    let result = match cli.command {
+        Some(_) if cli.train.any() => Err(anyhow::anyhow!(
+            "--config, --resume and --print-config start or inspect training; they cannot be combined with a subcommand"
         )),
-        (None, None) => Err(anyhow::anyhow!("nothing to do; see `gdrf-train --help`")),
+        Some(Command::Dataset(cmd)) => dataset(cmd),
+        Some(Command::Plot(a)) => plot_cmd::plot(a),
+        None if cli.train.any() => train_cmd::train(cli.train),
+        None => Err(anyhow::anyhow!("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`")),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

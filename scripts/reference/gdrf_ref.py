@@ -159,10 +159,13 @@ class ImplicitDeformation3D(nn.Module):
 class Generator(nn.Module):
     """Template field `siren` and deformation `deformnet`, as in the release."""
 
-    def __init__(self, z_dim=256, hidden_dim=256, map_hidden=256):
+    def __init__(self, z_dim=256, hidden_dim=256, map_hidden=256, trunk=5, color=4, deform_layers=4,
+                 correct_scale=100.0):
         super().__init__()
-        self.siren = TemplateSiren(z_dim, hidden_dim, map_hidden=map_hidden)
-        self.deformnet = ImplicitDeformation3D(z_dim=z_dim, hidden_dim=hidden_dim, map_hidden=map_hidden)
+        self.siren = TemplateSiren(z_dim, hidden_dim, trunk=trunk, color=color, map_hidden=map_hidden)
+        self.deformnet = ImplicitDeformation3D(z_dim=z_dim, hidden_dim=hidden_dim, layers=deform_layers,
+                                               map_hidden=map_hidden)
+        self.deformnet.correct_scale = correct_scale
 
     def field(self, x, dirs, shape, appearance):
         """x, dirs: (B, P, 3); shape / appearance: (raw frequencies, phases) → (rgb, σ, f_t, Δx, Δσ, σ_t)."""

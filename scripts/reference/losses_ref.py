@@ -62,11 +62,14 @@ def downsample_aa(x):
 class Discriminator(nn.Module):
     """ProgressiveEncoderDiscriminatorAntiAlias."""
 
-    def __init__(self):
+    def __init__(self, channels=None):
+        """channels: the 9 widths of fromRGB[i] / the input of layers[i] (default CHANNELS)."""
         super().__init__()
-        self.layers = nn.ModuleList([ResidualCoordConvBlock(CHANNELS[i], CHANNELS[i + 1]) for i in range(8)])
-        self.fromRGB = nn.ModuleList([AdapterBlock(c) for c in CHANNELS])
-        self.final_layer = nn.Conv2d(400, 1 + 256 + 2, 2)
+        ch = list(CHANNELS if channels is None else channels)
+        assert len(ch) == len(CHANNELS), f"channels needs {len(CHANNELS)} widths, got {ch}"
+        self.layers = nn.ModuleList([ResidualCoordConvBlock(ch[i], ch[i + 1]) for i in range(8)])
+        self.fromRGB = nn.ModuleList([AdapterBlock(c) for c in ch])
+        self.final_layer = nn.Conv2d(ch[-1], 1 + 256 + 2, 2)
 
     def forward(self, img, alpha):
         start = START[img.shape[-1]]

@@ -111,3 +111,27 @@ impl Report {
         assert!(bad.is_empty(), "{}: components above tolerance: {bad:?}", self.title);
     }
 }
+
+/// A training config of a tiny model (widths 8 and 4) for tests that run steps in
+/// seconds: `top` goes before the tables (seed, device, precision…), `schedule` is the
+/// body of `[schedule]`, `rest` ends the file (`[samples]`, `[[stages]]`, `[data]`…).
+pub fn tiny_training_toml(top: &str, schedule: &str, rest: &str) -> String {
+    format!(
+        r#"
+device = "cpu"
+{top}
+
+[generator]
+latent_dim = 8
+hidden_dim = 8
+mapping_hidden_dim = 8
+
+[discriminator]
+channels = [4, 4, 4, 4, 4, 4, 4, 4, 4]
+
+[schedule]
+{schedule}
+{rest}
+"#
+    )
+}

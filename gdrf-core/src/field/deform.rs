@@ -2,7 +2,7 @@
 use crate::config::GeneratorConfig;
 use crate::nn::film::{Film, FilmLayer};
 use crate::nn::{Linear, WeightInit};
-use tch::{nn, Tensor};
+use tch::{nn, Kind, Tensor};
 
 #[derive(Debug)]
 pub struct DeformField {
@@ -32,12 +32,21 @@ impl DeformField {
     /// `x: (B, P, 3)` target-space points → `(Δx: (B, P, 3), Δσ: (B, P, 1))`, Δσ already
     /// multiplied by the correction scale.
     pub fn forward(&self, x: &Tensor, shape: &Film) -> (Tensor, Tensor) {
+        self.forward_in(x, shape, None)
+    }
+
+    /// [`Self::forward`] with the hidden layers evaluated in `kind` (the first layer and
+    /// the outputs stay in `x`'s dtype).
+    pub fn forward_in(&self, x: &Tensor, shape: &Film, kind: Option<Kind>) -> (Tensor, Tensor) {
         let mut h = x.shallow_clone();
         for (i, layer) in self.film.iter().enumerate() {
             let (g, b) = shape.layer(i, self.hidden);
             h = layer.forward(&h, &g, &b);
+            if let (0, Some(k)) = (i, kind) {
+                h = h.to_kind(k);
+            }
         }
-        let out = self.head.forward(&h);
+        let out = crate::nn::like(&self.head.forward(&h), x);
         let raw = out.narrow(-1, 0, 3);
         let dx = if self.deform_scale == 1.0 { raw } else { raw * self.deform_scale };
         (dx, out.narrow(-1, 3, 1) * self.correct_scale)

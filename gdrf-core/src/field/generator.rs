@@ -2,6 +2,7 @@
 use super::deform::DeformField;
 use super::template::TemplateField;
 use crate::config::GeneratorConfig;
+use crate::loss::deform_reg::{RegSamples, RegTerms, RegVariant};
 use crate::nn::film::Film;
 use crate::nn::mapping::MappingNetwork;
 use crate::Result;
@@ -33,13 +34,19 @@ pub struct Truncation {
     pub appearance_mean: Tensor,
 }
 
-/// Ablations of the inference renderer (release options `no_deformation`, `no_correct`).
+/// Ablations of the inference renderer (release options `no_deformation`, `no_correct`)
+/// and the arithmetic of the field's networks.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct FieldOptions {
     /// Evaluate the template at x instead of x + Δx.
     pub no_deformation: bool,
     /// Drop the density correction Δσ.
     pub no_correction: bool,
+    /// Evaluate the hidden SIREN/FiLM layers in this dtype (`BFloat16` on GPUs) with
+    /// float32 master weights and modulations. Positions, the cheap 3 → H first layers,
+    /// Δx, σ and colours stay in the points' dtype, and the renderer integrates in float32
+    /// or wider (1e10 intervals and softplus underflow need it).
+    pub compute_kind: Option<Kind>,
 }
 
 /// The result of a density query at target-space points `x: (B, P, 3)`.
@@ -120,9 +127,9 @@ impl Generator {
 
     /// Density-only query (the shape side): `x: (B, P, 3)`.
     pub fn density(&self, x: &Tensor, shape: &Film, opts: FieldOptions) -> Density {
-        let (dx, dsigma) = self.deform.forward(x, shape);
+        let (dx, dsigma) = self.deform.forward_in(x, shape, opts.compute_kind);
         let x_template = if opts.no_deformation { x.shallow_clone() } else { x + &dx };
-        let (feature, sigma_t) = self.template.density(&x_template);
+        let (feature, sigma_t) = self.template.density_in(&x_template, opts.compute_kind);
         let sigma = if opts.no_correction { sigma_t.shallow_clone() } else { &sigma_t + &dsigma };
         Density { sigma, feature, sigma_t, x_template, dx, dsigma }
     }
@@ -130,7 +137,28 @@ impl Generator {
     /// Colour query (the appearance side): `feature: (B, P, H)`, `dirs: (B, P, 3)` → rgb
     /// `(B, P, 3)` in (0, 1).
     pub fn color(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
-        self.template.color(feature, dirs, appearance)
+        let rgb = self.template.color(feature, &crate::nn::like(dirs, feature), appearance);
+        crate::nn::like(&rgb, dirs)
+    }
+
+    /// Φ alone at target-space points `x: (B, P, 3)`: `(Δx: (B, P, 3), Δσ: (B, P, 1))`,
+    /// Δσ already scaled by the correction scale.
+    pub fn deformation(&self, x: &Tensor, shape: &Film) -> (Tensor, Tensor) {
+        self.deform.forward(x, shape)
+    }
+
+    /// T_σ alone at template-space points `x_t: (B, P, 3)`: `(f_t: (B, P, H), σ_t: (B, P, 1))`.
+    pub fn template_density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
+        self.template.density(x_t)
+    }
+
+    /// The four deformation regularisers (minimal correction, smoothness, rigidity,
+    /// normal consistency) at the samples chosen by
+    /// [`select_samples`](crate::loss::deform_reg::select_samples), for shape modulation
+    /// `shape` (one row per image). Autograd is enabled inside: the terms are built from
+    /// spatial gradients.
+    pub fn regularisers(&self, shape: &Film, samples: &RegSamples, variant: RegVariant) -> RegTerms {
+        crate::loss::deform_reg::regularisers(self, shape, samples, variant)
     }
 
     /// Full query: `(rgb: (B, P, 3), σ: (B, P, 1))`.

@@ -8,7 +8,7 @@ use crate::config::GeneratorConfig;
 use crate::nn::film::{Film, FilmLayer};
 use crate::nn::siren::SineLayer;
 use crate::nn::{Linear, WeightInit};
-use tch::{nn, Tensor};
+use tch::{nn, Kind, Tensor};
 
 #[derive(Debug)]
 pub struct TemplateField {
@@ -47,8 +47,20 @@ impl TemplateField {
     /// Density query. `x_t: (B, P, 3)` template-space points → `(f_t: (B, P, H),
     /// σ_t: (B, P, 1))`, σ_t raw (softplus is applied when integrating).
     pub fn density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
-        let f = self.trunk.iter().fold(x_t.shallow_clone(), |h, l| l.forward(&h));
-        let sigma = self.sigma_head.forward(&f);
+        self.density_in(x_t, None)
+    }
+
+    /// [`Self::density`] with the hidden layers evaluated in `kind`: f_t comes back in
+    /// `kind` (the colour branch's input), σ_t in `x_t`'s dtype.
+    pub fn density_in(&self, x_t: &Tensor, kind: Option<Kind>) -> (Tensor, Tensor) {
+        let mut f = x_t.shallow_clone();
+        for (i, layer) in self.trunk.iter().enumerate() {
+            f = layer.forward(&f);
+            if let (0, Some(k)) = (i, kind) {
+                f = f.to_kind(k);
+            }
+        }
+        let sigma = crate::nn::like(&self.sigma_head.forward(&f), x_t);
         (f, sigma)
     }
 

@@ -148,9 +148,11 @@ pub fn normal_distance(x_t: &Tensor, sigma_t: &Tensor, target: &Tensor) -> Tenso
     -Tensor::cosine_similarity(&grad_t, target, -1, 1e-8) + 1.0
 }
 
-/// Computes the four regularisers for shape modulation `shape` (one row per image).
-/// Autograd is enabled inside (the terms are built from spatial gradients), so this also
-/// works when called under `no_grad`, e.g. for finite differences.
+/// Computes the four regularisers for shape modulation `shape` (one row per image) through
+/// the generator's shape-side queries ([`Generator::deformation`],
+/// [`Generator::template_density`]). Autograd is enabled inside (the terms are built from
+/// spatial gradients), so this also works when called under `no_grad`, e.g. for finite
+/// differences. [`Generator::regularisers`] is the same call.
 pub fn regularisers(gen: &Generator, shape: &Film, samples: &RegSamples, variant: RegVariant) -> RegTerms {
     tch::with_grad(|| regularisers_with_grad(gen, shape, samples, variant))
 }
@@ -164,7 +166,7 @@ fn regularisers_with_grad(gen: &Generator, shape: &Film, samples: &RegSamples, v
     }
     .set_requires_grad(true);
     let (b, p) = (x.size()[0], x.size()[1]);
-    let (dx, dsigma) = gen.deform.forward(&x, shape);
+    let (dx, dsigma) = gen.deformation(&x, shape);
 
     // Jacobian rows ∂Δx_i/∂x by three reverse passes, kept differentiable.
     let rows: Vec<Tensor> = (0..3)
@@ -177,7 +179,7 @@ fn regularisers_with_grad(gen: &Generator, shape: &Film, samples: &RegSamples, v
 
     // Normal consistency on the near samples, against the stop-gradient target.
     let x_t = x.narrow(1, 0, pn) + dx.narrow(1, 0, pn);
-    let (_, sigma_t) = gen.template.density(&x_t);
+    let (_, sigma_t) = gen.template_density(&x_t);
     let target = density_gradient(&x, &(&sigma_t + dsigma.narrow(1, 0, pn))).narrow(1, 0, pn);
     let cos_dist = normal_distance(&x_t, &sigma_t, &target);
 

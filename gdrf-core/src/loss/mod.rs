@@ -1,15 +1,17 @@
 //! Training losses: the generator's total (adversarial, pose, deformation regularisers)
 //! and the discriminator's (logistic, R1, pose), each with a named breakdown.
+//!
+//! Losses take what was rendered and judged — discriminator outputs, poses, regulariser
+//! terms — and never render: the training loop renders once and decides what carries
+//! gradients (the two-pass patch step differentiates the image, then each band).
 // `t = t + x` on purpose: `+=` on a Tensor is an in-place add on a tensor autograd saved.
 #![allow(clippy::assign_op_pattern)]
 pub mod deform_reg;
 pub mod gan;
 
-use crate::camera::Poses;
-use crate::disc::Discriminator;
-use crate::render::{Noise, RenderedRays, Renderer};
-use crate::{Error, Latents, Result};
-use deform_reg::{regularisers, select_samples, RegConfig};
+use crate::disc::DiscOutput;
+use crate::{Error, Result};
+use deform_reg::{RegConfig, RegTerms};
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
 
@@ -77,17 +79,21 @@ impl Losses {
     }
 }
 
-/// A batch of generated images: what drives it and how it is seen.
-pub struct FakeBatch<'a> {
-    pub latents: &'a Latents,
-    pub poses: &'a Poses,
-    /// The codes, for the latent-prediction loss (only read when its weight is not 0).
-    pub z: Option<&'a Tensor>,
-    /// Image size and number of horizontal patches it is rendered in.
-    pub resolution: i64,
-    pub regions: i64,
-    /// Renderer noise (drawn when absent).
-    pub noise: &'a Noise,
+impl Losses {
+    /// Joins two breakdowns: totals added, terms concatenated.
+    pub fn merge(self, other: Losses) -> Losses {
+        let mut terms = self.terms;
+        terms.extend(other.terms);
+        Losses { total: self.total + other.total, terms }
+    }
+}
+
+impl LossConfig {
+    /// Whether R1 is applied at `step` (lazy R1 applies it every `r1_interval` steps).
+    /// The caller makes the real images require grad on those steps.
+    pub fn r1_due(&self, step: i64) -> bool {
+        self.r1_gamma != 0.0 && step % self.r1_interval == 0
+    }
 }
 
 /// Training state the losses depend on.
@@ -98,78 +104,100 @@ pub struct Schedule {
     pub alpha: f64,
 }
 
-/// The generator's loss: top-k non-saturating GAN + pose + the four regularisers on the
-/// rendered batch. `reg_rays: (B, n)` fixes the regulariser's ray draw (tests).
-pub fn generator_loss(
-    renderer: &Renderer,
-    disc: &Discriminator,
-    fake: &FakeBatch,
+/// The generator's adversarial terms on the discriminator's verdict `fake` about rendered
+/// images seen from `poses: (B, 2)`: top-k non-saturating GAN, pose and (when its weight
+/// is not 0) latent prediction of the codes `z`.
+pub fn generator_adversarial(
+    fake: &DiscOutput,
+    poses: &Tensor,
+    z: Option<&Tensor>,
     at: Schedule,
     cfg: &LossConfig,
-    reg_rays: Option<&Tensor>,
 ) -> Result<Losses> {
     cfg.validate()?;
-    let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
-    let d = disc.forward(&img, at.alpha)?;
-    let b = img.size()[0];
+    let b = fake.logit.size()[0];
+    if poses.size() != [b, 2] {
+        return Err(Error::Invalid(format!("fake poses have shape {:?}, expected [{b}, 2]", poses.size())));
+    }
     let k = gan::topk_count(at.step, b, cfg.topk_interval, cfg.topk_floor);
-    let adv = gan::g_nonsaturating(&d.logit, k);
-    let pose = gan::pose_loss(&d.pose, &fake.poses.stacked());
-    let rendered = RenderedRays::concat(&parts);
-    let samples = select_samples(&rendered, &cfg.reg, reg_rays);
-    let reg = regularisers(renderer.generator, &fake.latents.shape, &samples, cfg.reg.variant);
-    let mut total = &adv + &pose * cfg.pose_weight + reg.weighted_sum(&cfg.reg);
+    let adv = gan::g_nonsaturating(&fake.logit, k);
+    let pose = gan::pose_loss(&fake.pose, poses);
+    let mut total = &adv + &pose * cfg.pose_weight;
     let mut terms = vec![("g_adv", adv), ("g_pose", pose)];
     if cfg.latent_weight != 0.0 {
-        if let Some(z) = fake.z {
-            let l = gan::latent_loss(&d.latent, z);
+        if let Some(z) = z {
+            let l = gan::latent_loss(&fake.latent, z);
             total = total + &l * cfg.latent_weight;
             terms.push(("g_latent", l));
         }
     }
-    terms.extend([
-        ("reg_correction", reg.correction),
-        ("reg_smoothness", reg.smoothness),
-        ("reg_rigidity", reg.rigidity),
-        ("reg_normal", reg.normal),
-    ]);
     Ok(Losses { total, terms })
 }
 
-/// The discriminator's loss on real images `(B, 3, H, W)` with poses `(B, 2)` and on fakes
-/// rendered without gradients: logistic terms, R1 on reals (lazily every
-/// `r1_interval` steps, scaled by it), pose on fakes and reals. Real images that already
-/// require grad are used as they are (so callers can differentiate w.r.t. them).
+/// The weighted deformation regularisers (from [`Generator::regularisers`]) as a breakdown.
+///
+/// [`Generator::regularisers`]: crate::Generator::regularisers
+pub fn generator_regularisation(reg: RegTerms, cfg: &RegConfig) -> Losses {
+    let total = reg.weighted_sum(cfg);
+    Losses {
+        total,
+        terms: vec![
+            ("reg_correction", reg.correction),
+            ("reg_smoothness", reg.smoothness),
+            ("reg_rigidity", reg.rigidity),
+            ("reg_normal", reg.normal),
+        ],
+    }
+}
+
+/// The generator's total: [`generator_adversarial`] + [`generator_regularisation`].
+pub fn generator_loss(
+    fake: &DiscOutput,
+    poses: &Tensor,
+    z: Option<&Tensor>,
+    reg: RegTerms,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
+    Ok(generator_adversarial(fake, poses, z, at, cfg)?.merge(generator_regularisation(reg, &cfg.reg)))
+}
+
+/// The discriminator's loss from its verdicts on real images and on (detached) fakes:
+/// logistic terms, R1 on the reals when due ([`LossConfig::r1_due`]; lazily every
+/// `r1_interval` steps, scaled by it — `real_images` must then be the tensor `real` was
+/// computed from, with requires_grad), pose on fakes (`fake_poses: (B, 2)`) and on reals
+/// (when `real_poses` are known).
+#[allow(clippy::too_many_arguments)]
 pub fn discriminator_loss(
-    renderer: &Renderer,
-    disc: &Discriminator,
-    real: &Tensor,
-    real_poses: &Tensor,
-    fake: &FakeBatch,
+    real: &DiscOutput,
+    real_images: &Tensor,
+    real_poses: Option<&Tensor>,
+    fake: &DiscOutput,
+    fake_poses: &Tensor,
+    z: Option<&Tensor>,
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
     cfg.validate()?;
-    let fakes = tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?.0;
-    let r1_now = cfg.r1_gamma != 0.0 && at.step % cfg.r1_interval == 0;
-    let real = if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(r1_now) };
-    let dr = disc.forward(&real, at.alpha)?;
-    let df = disc.forward(&fakes.detach(), at.alpha)?;
-    let d_real = gan::d_real(&dr.logit);
-    let d_fake = gan::d_fake(&df.logit);
-    let pose_fake = gan::pose_loss(&df.pose, &fake.poses.stacked());
-    let pose_real = gan::pose_loss(&dr.pose, real_poses);
-    let mut total = &d_real + &d_fake + (&pose_fake + &pose_real) * cfg.pose_weight;
+    let d_real = gan::d_real(&real.logit);
+    let d_fake = gan::d_fake(&fake.logit);
+    let pose_fake = gan::pose_loss(&fake.pose, fake_poses);
+    let mut total = &d_real + &d_fake + &pose_fake * cfg.pose_weight;
     let mut terms = vec![("d_real", d_real), ("d_fake", d_fake)];
-    if r1_now {
-        let r1 = gan::r1_penalty(&dr.logit, &real)?;
+    if cfg.r1_due(at.step) {
+        let r1 = gan::r1_penalty(&real.logit, real_images)?;
         total = total + &r1 * (cfg.r1_gamma * cfg.r1_interval as f64);
         terms.push(("d_r1", r1));
     }
-    terms.extend([("d_pose_fake", pose_fake), ("d_pose_real", pose_real)]);
+    terms.push(("d_pose_fake", pose_fake));
+    if let Some(rp) = real_poses {
+        let pose_real = gan::pose_loss(&real.pose, rp);
+        total = total + &pose_real * cfg.pose_weight;
+        terms.push(("d_pose_real", pose_real));
+    }
     if cfg.latent_weight != 0.0 {
-        if let Some(z) = fake.z {
-            let l = gan::latent_loss(&df.latent, z);
+        if let Some(z) = z {
+            let l = gan::latent_loss(&fake.latent, z);
             total = total + &l * cfg.latent_weight;
             terms.push(("d_latent", l));
         }
@@ -180,7 +208,7 @@ pub fn discriminator_loss(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{CameraConfig, Generator, GeneratorConfig, RenderConfig};
+    use crate::disc::Discriminator;
     use tch::{nn, Device, Kind};
 
     #[test]
@@ -194,35 +222,48 @@ mod tests {
     #[test]
     fn lazy_r1_applies_every_k_steps_scaled_by_k() {
         tch::manual_seed(0);
-        let gvs = nn::VarStore::new(Device::Cpu);
-        let cfg = GeneratorConfig { latent_dim: 4, hidden_dim: 8, mapping_hidden_dim: 8, ..Default::default() };
-        let gen = Generator::new(&gvs.root(), &cfg).unwrap();
         let dvs = nn::VarStore::new(Device::Cpu);
         let disc = Discriminator::new(&dvs.root());
-        let (cam, rc) = (CameraConfig::chair(), RenderConfig { num_steps: 4, ..Default::default() });
-        let r = Renderer::new(&gen, &cam, &rc).unwrap();
-        let z = Tensor::randn([2, 4], (Kind::Float, Device::Cpu));
-        let lat = gen.latents(&z, &z, None);
-        let poses = Poses::from_angles(&[(1.0, 0.0), (1.2, 2.0)], Kind::Float, Device::Cpu);
-        let noise = Noise {
-            jitter: Some(Tensor::rand([2, 64, 4], (Kind::Float, Device::Cpu))),
-            importance: Some(Tensor::rand([2, 64, 4], (Kind::Float, Device::Cpu))),
-        };
-        let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: 8, regions: 1, noise: &noise };
-        let real = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu));
-        let rp = poses.stacked();
+        let fake_img = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu));
+        let real = Tensor::rand([2, 3, 8, 8], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        let poses = Tensor::from_slice(&[1.0f32, 0.0, 1.2, 2.0]).view([2, 2]);
+        let (dr, df) = (disc.forward(&real, 1.0).unwrap(), disc.forward(&fake_img, 1.0).unwrap());
         let lazy = LossConfig { r1_interval: 4, r1_gamma: 2.0, ..Default::default() };
         let every = LossConfig { r1_gamma: 2.0, ..Default::default() };
+        assert!(!lazy.r1_due(3) && lazy.r1_due(8) && every.r1_due(3));
         let at = |step| Schedule { step, alpha: 1.0 };
-        let off = discriminator_loss(&r, &disc, &real, &rp, &fake, at(3), &lazy).unwrap();
+        let loss = |step, cfg: &LossConfig| discriminator_loss(&dr, &real, Some(&poses), &df, &poses, None, at(step), cfg).unwrap();
+        let off = loss(3, &lazy);
         assert!(off.get("d_r1").is_none());
-        let on = discriminator_loss(&r, &disc, &real, &rp, &fake, at(8), &lazy).unwrap();
-        let base = discriminator_loss(&r, &disc, &real, &rp, &fake, at(8), &every).unwrap();
+        let on = loss(8, &lazy);
+        let base = loss(8, &every);
         let r1 = on.get("d_r1").unwrap().double_value(&[]);
         assert!(r1 > 0.0);
         let extra = on.total.double_value(&[]) - off.total.double_value(&[]);
         assert!((extra - 4.0 * 2.0 * r1).abs() < 1e-5 * (1.0 + extra.abs()), "{extra} vs {}", 8.0 * r1);
         let extra_every = base.total.double_value(&[]) - off.total.double_value(&[]);
         assert!((extra_every - 2.0 * r1).abs() < 1e-5 * (1.0 + extra.abs()));
+        // R1 due on images that do not require grad is an error, not a silent zero.
+        let plain = real.detach();
+        let dp = disc.forward(&plain, 1.0).unwrap();
+        assert!(discriminator_loss(&dp, &plain, None, &df, &poses, None, at(8), &lazy).is_err());
+    }
+
+    #[test]
+    fn generator_total_is_adversarial_plus_weighted_regularisers() {
+        let logit = Tensor::from_slice(&[0.3f64, -1.0]).view([2, 1]);
+        let d = DiscOutput { logit, latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)), pose: Tensor::zeros([2, 2], (Kind::Double, Device::Cpu)) };
+        let poses = Tensor::from_slice(&[0.5f64, 0.0, 1.0, 0.0]).view([2, 2]);
+        let c = |v: f64| Tensor::from(v);
+        let reg = RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
+        let cfg = LossConfig::default();
+        let l = generator_loss(&d, &poses, None, reg, Schedule { step: 0, alpha: 1.0 }, &cfg).unwrap();
+        let adv = (Tensor::from_slice(&[-0.3f64, 1.0])).softplus().mean(Kind::Double).double_value(&[]);
+        let pose = ((1.0 - 0.5f64.cos()) + (1.0 - 1.0f64.cos())) / 4.0;
+        let want = adv + 15.0 * pose + 0.01 * 2.0 + 3.0 + 0.1 * 4.0 + 5.0 * 0.5;
+        assert!((l.total.double_value(&[]) - want).abs() < 1e-12);
+        let names: Vec<_> = l.terms.iter().map(|t| t.0).collect();
+        assert_eq!(names, ["g_adv", "g_pose", "reg_correction", "reg_smoothness", "reg_rigidity", "reg_normal"]);
+        assert!(generator_adversarial(&d, &poses.narrow(0, 0, 1), None, Schedule { step: 0, alpha: 1.0 }, &cfg).is_err());
     }
 }

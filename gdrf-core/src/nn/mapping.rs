@@ -1,5 +1,6 @@
 //! The mapping network: z → (raw frequencies, raw phases) for one FiLM-modulated net.
 use super::{Linear, WeightInit};
+use crate::rng::{Purpose, RandomSource, StepRng};
 use tch::{nn, Device, Kind, Tensor};
 
 /// Four Linear layers `z → h → h → h → out` with LeakyReLU(0.2) after the first three.
@@ -40,11 +41,12 @@ impl MappingNetwork {
 
     /// Mean raw output over `n` codes z ~ N(0, I) drawn from `seed` (the truncation
     /// centre). The release redraws 10 000 codes on every call; a fixed seed makes
-    /// renders reproducible at no cost in accuracy.
+    /// renders reproducible at no cost in accuracy. The codes come from the project's
+    /// counter-based generator, so libtorch's global generator is neither read nor reseeded.
     pub fn mean_output(&self, n: i64, seed: i64, kind: Kind, device: Device) -> Tensor {
         let z_dim = self.layers[0].weight.size()[1];
         tch::no_grad(|| {
-            let z = seeded_randn(&[n, z_dim], seed).to_kind(kind).to_device(device);
+            let z = StepRng::new(seed as u64, 0, Purpose::Truncation, kind, device).normal(&[n, z_dim]);
             self.forward(&z).mean_dim(0, true, kind)
         })
     }

@@ -49,9 +49,20 @@ impl Linear {
         Self { weight, bias }
     }
 
-    /// `x: (…, in)` → `(…, out)`.
+    /// `x: (…, in)` → `(…, out)`, computed in `x`'s dtype (the float32 parameters are
+    /// cast when the input is reduced precision).
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        x.linear(&self.weight, Some(&self.bias))
+        x.linear(&like(&self.weight, x), Some(&like(&self.bias, x)))
+    }
+}
+
+/// `t` in the dtype of `x` (no copy when they already agree): reduced-precision network
+/// evaluation keeps float32 master weights and casts them per call.
+pub fn like(t: &Tensor, x: &Tensor) -> Tensor {
+    if t.kind() == x.kind() {
+        t.shallow_clone()
+    } else {
+        t.to_kind(x.kind())
     }
 }
 

@@ -18,6 +18,7 @@ impl SineLayer {
     /// `x: (…, in)` → `(…, out)`. The factor 30 is folded into W and b (one matmul and
     /// the sine per point instead of an extra pass over the activations).
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        x.linear(&(&self.linear.weight * Self::OMEGA), Some(&(&self.linear.bias * Self::OMEGA))).sin()
+        let (w, b) = (&self.linear.weight * Self::OMEGA, &self.linear.bias * Self::OMEGA);
+        x.linear(&super::like(&w, x), Some(&super::like(&b, x))).sin()
     }
 }

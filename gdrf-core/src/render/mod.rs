@@ -5,4 +5,4 @@ pub mod renderer;
 pub mod samplers;
 
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
-pub use renderer::{Image, Noise, RenderedRays, Renderer};
+pub use renderer::{assemble_image, Image, Noise, RenderedRays, Renderer};

@@ -4,7 +4,11 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use gdrf_core::camera::Poses;
 use gdrf_core::disc::Discriminator;
-use gdrf_core::loss::{discriminator_loss, generator_loss, FakeBatch, LossConfig, Schedule};
+use gdrf_core::loss::{LossConfig, Schedule};
+use gdrf_core::data::layouts::Layout;
+use gdrf_core::data::synth::SynthOptions;
+use gdrf_core::data::SplitChoice;
+use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfig, Trainer};
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::{device, CameraConfig, Generator, GeneratorConfig, RenderConfig};
 use serde_json::json;
@@ -43,6 +47,33 @@ enum Bench {
         #[arg(long)]
         no_reference: bool,
         /// Folder for losses.json and losses.png.
+        #[arg(long, default_value = "bench")]
+        out_dir: PathBuf,
+    },
+    /// Full training steps (D step, G step, clipping, Adam, EMA) of a training config's
+    /// stage, gdrf's `Trainer::step` against the PyTorch reference at the same sizes, on
+    /// the CPU. Real images come from a small procedural dataset generated in a temporary
+    /// folder (the reference uses random images). Timed steps are steps where R1 is due.
+    Step {
+        /// Training config (TOML), e.g. configs/chairs-tiny.toml.
+        #[arg(long)]
+        config: PathBuf,
+        /// Batch size (default: the stage's).
+        #[arg(long)]
+        batch: Option<i64>,
+        /// Index of the config's stage to run (its resolution, samples, batch, split).
+        #[arg(long, default_value_t = 0)]
+        stage: usize,
+        /// Timed steps per implementation (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        steps: usize,
+        /// Untimed steps first.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// Skip the PyTorch reference (report gdrf alone).
+        #[arg(long)]
+        no_reference: bool,
+        /// Folder for step-<config>-stage<I>-b<batch>.json and .png.
         #[arg(long, default_value = "bench")]
         out_dir: PathBuf,
     },
@@ -89,7 +120,7 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
     tch::manual_seed(0);
     let gvs = nn::VarStore::new(tch::Device::Cpu);
     let gen = Generator::new(&gvs.root(), &GeneratorConfig::default())?;
-    let dvs = nn::VarStore::new(tch::Device::Cpu);
+    let mut dvs = nn::VarStore::new(tch::Device::Cpu);
     let disc = Discriminator::new(&dvs.root());
     let camera = CameraConfig::chair();
     let config = RenderConfig { num_steps: steps, ..Default::default() };
@@ -109,6 +140,8 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
     for _ in 0..repeats {
         zero(&gvs);
         zero(&dvs);
+        // The generator step leaves D frozen: no D parameter gradients are computed.
+        dvs.freeze();
         let (mut fwd, mut bwd) = (0.0, 0.0);
         for _ in 0..split {
             let t0 = Instant::now();
@@ -117,7 +150,7 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
             let lat = gen.latents(&z, &z, None);
             let noise = Noise::default();
             let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
-            let loss = generator_loss(&renderer, &disc, &fake, at, &cfg, None)?;
+            let loss = generator_pass(&renderer, &disc, &fake, None, at, &cfg)?;
             let t1 = Instant::now();
             loss.total.backward();
             fwd += (t1 - t0).as_secs_f64();
@@ -125,6 +158,7 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
         }
         t.entry("g_forward").or_default().push(fwd);
         t.entry("g_backward").or_default().push(bwd);
+        dvs.unfreeze();
 
         zero(&dvs);
         let t0 = Instant::now();
@@ -135,7 +169,7 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
         let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
         let real = Tensor::rand([b, 3, res, res], (Kind::Float, tch::Device::Cpu)) * 2.0 - 1.0;
         let real_poses = Poses::sample(&camera, b, Kind::Float, tch::Device::Cpu).stacked();
-        let loss = discriminator_loss(&renderer, &disc, &real, &real_poses, &fake, at, &cfg)?;
+        let loss = discriminator_pass(&renderer, &disc, &real, Some(&real_poses), &fake, at, &cfg)?;
         let t1 = Instant::now();
         loss.total.backward();
         t.entry("d_forward").or_default().push((t1 - t0).as_secs_f64());
@@ -151,8 +185,307 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
     }))
 }
 
+/// A folder under the system's temp dir, removed (best effort) when dropped.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(prefix: &str) -> Result<Self> {
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+        let dir = std::env::temp_dir().join(format!("{prefix}-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        Ok(Self(dir))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// The config of `gdrf-bench step`: stage `stage` of the file as the only stage (batch
+/// overridden), on the CPU, never sampling or rolling back, training on a small
+/// procedural dataset under `tmp`. Also returns notes on what the comparison leaves out.
+fn step_config(path: &Path, stage: usize, batch: Option<i64>, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
+    let mut cfg = TrainConfig::load(path)?;
+    let n = cfg.stages.len();
+    if stage >= n {
+        bail!("--stage {stage}: {} has {n} stage(s), numbered from 0", path.display());
+    }
+    let mut notes = Vec::new();
+    let mut st = cfg.stages[stage].clone();
+    st.from_step = 0;
+    if let Some(b) = batch {
+        if b < 1 {
+            bail!("--batch must be at least 1");
+        }
+        st.batch_size = b;
+        if b % st.batch_split != 0 {
+            notes.push(format!("batch_split {} does not divide --batch {b}: using batch_split 1", st.batch_split));
+            st.batch_split = 1;
+        }
+    }
+    if st.regions > 1 {
+        notes.push(format!(
+            "gdrf runs the two-pass patch step ({} regions); the reference renders whole images",
+            st.regions
+        ));
+    }
+    if cfg.camera.distribution != gdrf_core::PoseDistribution::Uniform {
+        notes.push(format!("poses: gdrf draws {:?}, the reference uniform", cfg.camera.distribution));
+    }
+    if !cfg.render.hierarchical {
+        notes.push("render.hierarchical is off; the reference always adds importance samples".into());
+    }
+    if cfg.generator.deform_scale != 1.0 {
+        notes.push(format!("generator.deform_scale {} is not modelled by the reference (1)", cfg.generator.deform_scale));
+    }
+    if cfg.loss.latent_weight != 0.0 {
+        notes.push("loss.latent_weight is not 0; the reference has no latent loss".into());
+    }
+    let resolution = st.resolution as usize;
+    cfg.stages = vec![st];
+    cfg.device = "cpu".into();
+    cfg.schedule.total_steps = i64::MAX / 2;
+    cfg.schedule.sample_interval = 0;
+    cfg.debug = Default::default();
+    // No checkpoint to go back to: a non-finite step is reported, never rolled back.
+    cfg.guard.rollback_after = i64::MAX;
+    let synth = cfg.data.synth.clone().unwrap_or_default();
+    cfg.data.path = tmp.join("data");
+    cfg.data.layout = Layout::Auto;
+    cfg.data.poses = None;
+    cfg.data.require_poses = true;
+    cfg.data.skip_bad = false;
+    cfg.data.split = SplitChoice::Train;
+    cfg.data.cache = false;
+    cfg.data.cache_dir = None;
+    cfg.data.synth = Some(SynthOptions {
+        count: 64,
+        resolution,
+        supersample: 1,
+        shadows: false,
+        held_out_fraction: 0.0,
+        ..synth
+    });
+    cfg.validate()?;
+    Ok((cfg, notes))
+}
+
+/// `warmup` untimed then `steps` timed training steps of gdrf. Timed steps run at step
+/// indices where R1 is due (the counter is moved up to the next multiple of
+/// `r1_interval`; a single stage has no fade-in, so nothing else depends on it).
+fn bench_step_gdrf(cfg: TrainConfig, run_dir: &Path, warmup: usize, steps: usize) -> Result<serde_json::Value> {
+    let threads = device::init_threads();
+    let mut trainer = Trainer::new(cfg, run_dir)?;
+    let t0 = Instant::now();
+    trainer.prepare_data(&|| {})?;
+    let res = trainer.cfg.stages[0].resolution;
+    let n = trainer.dataset(res)?.len();
+    eprintln!("procedural dataset: {n} images at {res}² ({:.1} s)", t0.elapsed().as_secs_f64());
+    let report = |r: &gdrf_core::train::StepReport, what: &str| {
+        let bad = if r.d_skipped || r.g_skipped { " (non-finite: update skipped)" } else { "" };
+        eprintln!("gdrf {what} {}: {:.2} s{bad}", r.step, r.seconds);
+    };
+    for _ in 0..warmup {
+        report(&trainer.step()?, "warm-up step");
+    }
+    let every = trainer.cfg.loss.r1_interval.max(1);
+    let mut samples = Vec::with_capacity(steps);
+    for _ in 0..steps {
+        let s = trainer.progress.step;
+        trainer.progress.step = (s + every - 1) / every * every;
+        let r = trainer.step()?;
+        report(&r, "step");
+        samples.push(r.seconds);
+    }
+    let b = trainer.cfg.stages[0].batch_size as f64;
+    let med = median(&samples);
+    Ok(json!({
+        "implementation": "gdrf (tch)",
+        "threads": threads,
+        "median_s": {"step": med},
+        "samples_s": {"step": samples},
+        "peak_rss_mb": peak_rss_mb(),
+        "images_per_second": b / med,
+    }))
+}
+
+/// The reference's flags for the same step (scripts/reference/bench_step.py).
+fn step_reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result<Vec<String>> {
+    let st = &cfg.stages[0];
+    let (g_lr, d_lr) = cfg.learning_rates(0);
+    let (g, l, o, c) = (&cfg.generator, &cfg.loss, &cfg.optim, &cfg.camera);
+    let list = |v: &[String]| v.join(",");
+    let variant = serde_json::to_value(l.reg.variant)?.as_str().unwrap_or("release").to_string();
+    let mut a: Vec<(&str, String)> = vec![
+        ("resolution", st.resolution.to_string()),
+        ("num-steps", st.num_steps.to_string()),
+        ("batch", st.batch_size.to_string()),
+        ("batch-split", st.batch_split.to_string()),
+        ("latent-dim", g.latent_dim.to_string()),
+        ("hidden-dim", g.hidden_dim.to_string()),
+        ("mapping-hidden-dim", g.mapping_hidden_dim.to_string()),
+        ("trunk-layers", g.trunk_layers.to_string()),
+        ("color-layers", g.color_layers.to_string()),
+        ("deform-layers", g.deform_layers.to_string()),
+        ("correct-scale", g.correct_scale.to_string()),
+        ("disc-channels", list(&cfg.discriminator.channels.iter().map(|c| c.to_string()).collect::<Vec<_>>())),
+        ("r1-gamma", l.r1_gamma.to_string()),
+        ("r1-interval", l.r1_interval.to_string()),
+        ("pose-weight", l.pose_weight.to_string()),
+        (
+            "reg-weights",
+            list(&[l.reg.correction, l.reg.smoothness, l.reg.rigidity, l.reg.normal].map(|w| w.to_string())),
+        ),
+        ("reg-variant", variant),
+        ("reg-ray-ratio", l.reg.ray_ratio.to_string()),
+        ("reg-near-ratio", l.reg.near_ratio.to_string()),
+        ("reg-sample-ratio", l.reg.sample_ratio.to_string()),
+        ("topk-interval", l.topk_interval.to_string()),
+        ("topk-floor", l.topk_floor.to_string()),
+        ("g-lr", g_lr.to_string()),
+        ("d-lr", d_lr.to_string()),
+        ("betas", list(&[o.beta1.to_string(), o.beta2.to_string()])),
+        ("adam-eps", o.eps.to_string()),
+        ("grad-clip", o.grad_clip.to_string()),
+        ("ema-decay", cfg.ema.decay.to_string()),
+        ("fov", c.fov_deg.to_string()),
+        ("ray-start", c.ray_start.to_string()),
+        ("ray-end", c.ray_end.to_string()),
+        ("h-mean", c.h_mean.to_string()),
+        ("h-std", c.h_std.to_string()),
+        ("v-mean", c.v_mean.to_string()),
+        ("v-std", c.v_std.to_string()),
+        ("warmup", warmup.to_string()),
+        ("steps", steps.to_string()),
+        ("seed", cfg.seed.to_string()),
+    ];
+    if !cfg.ema.warmup {
+        a.push(("no-ema-warmup", String::new()));
+    }
+    // --key=value, so that negative numbers are not taken for options.
+    Ok(a.into_iter().map(|(k, v)| if v.is_empty() { format!("--{k}") } else { format!("--{k}={v}") }).collect())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bench_step(
+    config: &Path,
+    batch: Option<i64>,
+    stage: usize,
+    steps: usize,
+    warmup: usize,
+    no_reference: bool,
+    out_dir: &Path,
+) -> Result<()> {
+    if steps == 0 {
+        bail!("--steps must be at least 1");
+    }
+    let tmp = TempDir::new("gdrf-bench-step")?;
+    let (cfg, notes) = step_config(config, stage, batch, &tmp.0)?;
+    for n in &notes {
+        eprintln!("note: {n}");
+    }
+    let st = cfg.stages[0].clone();
+    let (b, res, n) = (st.batch_size, st.resolution, st.num_steps);
+    let stem = config.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "config".into());
+    let r1 = if cfg.loss.r1_gamma == 0.0 { "R1 off".to_string() } else { "R1 due".to_string() };
+    let title = format!(
+        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {res}², {n}+{n} samples, {r1}",
+        st.batch_split
+    );
+    eprintln!("{title}\nrunning gdrf ({warmup} warm-up + {steps} timed steps) …");
+    let (g_lr, d_lr) = cfg.learning_rates(0);
+    let settings = json!({
+        "config": config.display().to_string(),
+        "stage": stage,
+        "resolution": res,
+        "num_steps": n,
+        "batch_size": b,
+        "batch_split": st.batch_split,
+        "regions": st.regions,
+        "warmup_steps": warmup,
+        "timed_steps": steps,
+        "device": "cpu",
+        "timed_steps_r1": "timed steps run at step indices where R1 is due (multiples of loss.r1_interval)",
+        "real_images": "gdrf: a 64-image procedural dataset at the stage's resolution; reference: random images and poses",
+        "g_lr": g_lr,
+        "d_lr": d_lr,
+        "generator": cfg.generator,
+        "discriminator": cfg.discriminator,
+        "loss": cfg.loss,
+        "optim": cfg.optim,
+        "ema": cfg.ema,
+        "camera": cfg.camera,
+        "notes": notes,
+    });
+    let ref_args = step_reference_args(&cfg, warmup, steps)?;
+    let mut runs = vec![bench_step_gdrf(cfg, &tmp.0.join("run"), warmup, steps)?];
+    if !no_reference {
+        eprintln!("running the PyTorch reference …");
+        let out = Command::new(python())
+            .arg(root().join("scripts/reference/bench_step.py"))
+            .args(&ref_args)
+            .stderr(std::process::Stdio::inherit())
+            .output()
+            .context("starting the PyTorch reference (run scripts/setup.sh)")?;
+        if !out.status.success() {
+            bail!("the PyTorch reference failed (its messages are above)");
+        }
+        runs.push(serde_json::from_slice(&out.stdout).context("reading the reference's JSON")?);
+    }
+    let num = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap_or(f64::NAN);
+    let med = |r: &serde_json::Value| r["median_s"]["step"].as_f64().unwrap_or(f64::NAN);
+    println!("{title}");
+    println!("{:<20}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
+    for r in &runs {
+        println!(
+            "{:<20}{:>16.3}{:>12.2}{:>12.0}",
+            r["implementation"].as_str().unwrap_or("?"),
+            med(r),
+            num(r, "images_per_second"),
+            num(r, "peak_rss_mb")
+        );
+    }
+    if runs.len() == 2 {
+        let (x, y) = (&runs[0], &runs[1]);
+        println!(
+            "{:<20}{:>15.2}×{:>11.2}×{:>11.2}×",
+            "reference/gdrf",
+            med(y) / med(x),
+            num(y, "images_per_second") / num(x, "images_per_second"),
+            num(y, "peak_rss_mb") / num(x, "peak_rss_mb")
+        );
+    }
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let name = format!("step-{stem}-stage{stage}-b{b}");
+    let json_path = out_dir.join(format!("{name}.json"));
+    let doc = json!({
+        "title": title,
+        "machine": format!("{} CPU threads", runs[0]["threads"]),
+        "settings": settings,
+        "phases": ["step"],
+        "runs": runs,
+    });
+    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    let png = out_dir.join(format!("{name}.png"));
+    let status = Command::new(python())
+        .arg(root().join("scripts/plot_bench.py"))
+        .args([&json_path, &png])
+        .status()
+        .context("starting scripts/plot_bench.py")?;
+    if !status.success() {
+        bail!("plotting failed (is matplotlib installed? run scripts/setup.sh)");
+    }
+    println!("wrote {} and {}", json_path.display(), png.display());
+    Ok(())
+}
+
 fn run() -> Result<()> {
     match Cli::parse().command {
+        Bench::Step { config, batch, stage, steps, warmup, no_reference, out_dir } => {
+            bench_step(&config, batch, stage, steps, warmup, no_reference, &out_dir)?;
+        }
         Bench::Losses { batch, batch_split, resolution, steps, repeats, no_reference, out_dir } => {
             if batch_split < 1 || batch % batch_split != 0 {
                 bail!("--batch-split {batch_split} must divide --batch {batch}");

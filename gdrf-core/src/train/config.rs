@@ -1,0 +1,503 @@
+//! The training configuration (TOML): models, camera, sampling, the curriculum, losses,
+//! optimisers, EMA, intervals, data, seed, device, precision. Every table rejects unknown
+//! keys; [`TrainConfig::validate`] names each out-of-range value and what was expected.
+//! The resolved config is saved in the run directory and inside every checkpoint.
+use crate::data::DataConfig;
+use crate::disc::DiscConfig;
+use crate::loss::LossConfig;
+use crate::{CameraConfig, Error, GeneratorConfig, RenderConfig, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// One stage of the curriculum, in force from `from_step` until the next stage starts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stage {
+    pub from_step: i64,
+    /// Image side (a power of two from 8 to 512: the discriminator's input sizes).
+    pub resolution: i64,
+    /// Coarse samples per ray N (the importance pass adds N more).
+    pub num_steps: usize,
+    /// Images per step (the global batch).
+    pub batch_size: i64,
+    /// The generator step renders the batch in this many chunks, accumulating gradients
+    /// (bounds memory; the gradient is the batch mean whatever the split).
+    #[serde(default = "one")]
+    pub batch_split: i64,
+    /// Horizontal bands per image: above 1, the generator step runs the release's
+    /// two-pass patch step (a no-grad render, then each band re-rendered with gradients
+    /// at the same sample depths).
+    #[serde(default = "one")]
+    pub regions: i64,
+    /// Learning rates of this stage (default: `[optim]`'s).
+    #[serde(default)]
+    pub g_lr: Option<f64>,
+    #[serde(default)]
+    pub d_lr: Option<f64>,
+}
+
+fn one() -> i64 {
+    1
+}
+
+/// Adam (the release's betas (0, 0.9)) and gradient clipping.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OptimConfig {
+    pub g_lr: f64,
+    pub d_lr: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+    /// Global L2 norm each network's gradient is clipped to (0 = off).
+    pub grad_clip: f64,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        Self { g_lr: 2e-5, d_lr: 2e-4, beta1: 0.0, beta2: 0.9, eps: 1e-8, grad_clip: 0.3 }
+    }
+}
+
+/// Exponential moving average of the generator (what samples and exports use).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EmaConfig {
+    pub decay: f64,
+    /// torch_ema's warm-up: decay_n = min(decay, (1 + n)/(10 + n)) at the n-th update.
+    pub warmup: bool,
+}
+
+impl Default for EmaConfig {
+    fn default() -> Self {
+        Self { decay: 0.999, warmup: true }
+    }
+}
+
+/// Length of the run and how often it logs, checkpoints and renders samples.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ScheduleConfig {
+    /// Training stops after this many steps.
+    pub total_steps: i64,
+    /// Steps over which the discriminator fades in a new resolution (α: 0 → 1).
+    pub fade_steps: i64,
+    /// A line of metrics.jsonl every this many steps.
+    pub log_interval: i64,
+    pub checkpoint_interval: i64,
+    /// Checkpoints kept in RUN_DIR/checkpoints (older ones are removed).
+    pub keep_checkpoints: usize,
+    /// Sample, swap and template grids every this many steps (0 = never).
+    pub sample_interval: i64,
+}
+
+impl Default for ScheduleConfig {
+    fn default() -> Self {
+        Self {
+            total_steps: 110_000,
+            fade_steps: 10_000,
+            log_interval: 10,
+            checkpoint_interval: 2000,
+            keep_checkpoints: 3,
+            sample_interval: 2000,
+        }
+    }
+}
+
+/// The preview grids written every `sample_interval` steps.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SampleConfig {
+    /// Fixed codes in the sample grid (one column each).
+    pub count: i64,
+    /// Side of the swap matrix (rows share shape, columns share appearance).
+    pub swap: i64,
+    /// Image side of the previews (0 = the stage's resolution).
+    pub resolution: i64,
+    /// Yaw offsets (radians) from the mean pose, one grid row each.
+    pub yaws: Vec<f64>,
+}
+
+impl Default for SampleConfig {
+    fn default() -> Self {
+        Self { count: 8, swap: 4, resolution: 0, yaws: vec![0.0, 0.5, 1.6] }
+    }
+}
+
+/// What happens on non-finite losses or gradients.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GuardConfig {
+    /// After this many consecutive steps with a skipped update, roll back to the last
+    /// checkpoint with the learning rates multiplied by `lr_factor`.
+    pub rollback_after: i64,
+    pub lr_factor: f64,
+    /// Give up (stop with an error) after this many rollbacks.
+    pub max_rollbacks: i64,
+}
+
+impl Default for GuardConfig {
+    fn default() -> Self {
+        Self { rollback_after: 3, lr_factor: 0.5, max_rollbacks: 5 }
+    }
+}
+
+/// Fault injection, to test the guard: the generator loss is multiplied by NaN at these
+/// steps (the first time each is reached; a replay after a rollback runs clean).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DebugConfig {
+    pub inject_nonfinite_steps: Vec<i64>,
+}
+
+/// Network arithmetic. Integration always runs in float32 or wider.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    #[default]
+    Float32,
+    /// The generator's hidden SIREN/FiLM layers in bfloat16 (float32 master weights,
+    /// positions, first layers, outputs, integration and discriminator). Meant for GPUs;
+    /// CPUs run it correctly but usually slower than float32.
+    Bfloat16,
+}
+
+impl Precision {
+    /// The dtype of the generator's hidden layers (None: the parameters' own).
+    pub fn compute_kind(self) -> Option<tch::Kind> {
+        match self {
+            Precision::Float32 => None,
+            Precision::Bfloat16 => Some(tch::Kind::BFloat16),
+        }
+    }
+}
+
+/// A whole training run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Seeds the initial weights and every random draw of every step.
+    #[serde(default)]
+    pub seed: u64,
+    /// auto, cpu, cuda or cuda:N.
+    #[serde(default = "auto")]
+    pub device: String,
+    #[serde(default)]
+    pub precision: Precision,
+    /// libtorch threads (0 = all cores).
+    #[serde(default)]
+    pub threads: usize,
+    #[serde(default)]
+    pub generator: GeneratorConfig,
+    #[serde(default)]
+    pub discriminator: DiscConfig,
+    #[serde(default)]
+    pub camera: CameraConfig,
+    /// Sampling and integration; `num_steps` is set by each stage.
+    #[serde(default)]
+    pub render: RenderConfig,
+    #[serde(default)]
+    pub loss: LossConfig,
+    #[serde(default)]
+    pub optim: OptimConfig,
+    #[serde(default)]
+    pub ema: EmaConfig,
+    #[serde(default)]
+    pub schedule: ScheduleConfig,
+    #[serde(default)]
+    pub samples: SampleConfig,
+    #[serde(default)]
+    pub guard: GuardConfig,
+    #[serde(default)]
+    pub debug: DebugConfig,
+    pub stages: Vec<Stage>,
+    pub data: DataConfig,
+}
+
+fn auto() -> String {
+    "auto".into()
+}
+
+/// `base.join(p)` with `.` and `..` resolved lexically (`configs/../data` → `data`).
+fn lexical_join(base: &Path, p: &Path) -> std::path::PathBuf {
+    let mut out = std::path::PathBuf::new();
+    for c in base.join(p).components() {
+        match c {
+            std::path::Component::CurDir => {}
+            std::path::Component::ParentDir if matches!(out.components().next_back(), Some(std::path::Component::Normal(_))) => {
+                out.pop();
+            }
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+fn cfg_err(msg: String) -> Error {
+    Error::Config(msg)
+}
+
+impl TrainConfig {
+    /// Parses and validates TOML. `base` resolves the data paths (the config file's folder).
+    pub fn from_toml(text: &str, base: &Path) -> Result<Self> {
+        let mut cfg: TrainConfig = toml::from_str(text).map_err(|e| cfg_err(e.to_string()))?;
+        cfg.data.path = lexical_join(base, &cfg.data.path);
+        cfg.data.poses = cfg.data.poses.map(|p| lexical_join(base, &p));
+        cfg.data.cache_dir = cfg.data.cache_dir.map(|p| lexical_join(base, &p));
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Reads, parses and validates a config file; errors name the file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.into(), source })?;
+        // Absolute, so that a run resumes from any working directory.
+        let base = std::path::absolute(path.parent().unwrap_or(Path::new("."))).map_err(|source| Error::Io { path: path.into(), source })?;
+        Self::from_toml(&text, &base).map_err(|e| match e {
+            Error::Config(m) => Error::Config(format!("{}: {m}", path.display())),
+            e => e,
+        })
+    }
+
+    /// The resolved config as TOML (every default written out).
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string_pretty(self).map_err(|e| cfg_err(format!("cannot write the config as TOML: {e}")))
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        self.generator.validate()?;
+        self.discriminator.validate()?;
+        self.camera.validate()?;
+        self.render.validate()?;
+        self.loss.validate()?;
+        crate::device::select_syntax(&self.device).map_err(|e| cfg_err(format!("device: {e}")))?;
+        let o = &self.optim;
+        for (k, v) in [("optim.g_lr", o.g_lr), ("optim.d_lr", o.d_lr), ("optim.eps", o.eps)] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(cfg_err(format!("{k} is {v}, expected a positive number")));
+            }
+        }
+        for (k, v) in [("optim.beta1", o.beta1), ("optim.beta2", o.beta2)] {
+            if !(0.0..1.0).contains(&v) {
+                return Err(cfg_err(format!("{k} is {v}, expected a value in [0, 1)")));
+            }
+        }
+        if !(o.grad_clip >= 0.0 && o.grad_clip.is_finite()) {
+            return Err(cfg_err(format!("optim.grad_clip is {}, expected 0 (off) or a positive norm", o.grad_clip)));
+        }
+        if !(0.0..1.0).contains(&self.ema.decay) {
+            return Err(cfg_err(format!("ema.decay is {}, expected a value in [0, 1)", self.ema.decay)));
+        }
+        let s = &self.schedule;
+        for (k, v) in [
+            ("schedule.total_steps", s.total_steps),
+            ("schedule.fade_steps", s.fade_steps),
+            ("schedule.log_interval", s.log_interval),
+            ("schedule.checkpoint_interval", s.checkpoint_interval),
+        ] {
+            if v < 1 {
+                return Err(cfg_err(format!("{k} is {v}, expected at least 1")));
+            }
+        }
+        if s.keep_checkpoints < 1 {
+            return Err(cfg_err("schedule.keep_checkpoints is 0, expected at least 1".into()));
+        }
+        if s.sample_interval < 0 {
+            return Err(cfg_err(format!("schedule.sample_interval is {}, expected 0 (never) or more", s.sample_interval)));
+        }
+        let sm = &self.samples;
+        if sm.count < 1 || sm.swap < 1 || sm.yaws.is_empty() || sm.resolution < 0 {
+            return Err(cfg_err(format!(
+                "samples: count {} and swap {} must be at least 1, yaws non-empty, resolution 0 (the stage's) or more",
+                sm.count, sm.swap
+            )));
+        }
+        let g = &self.guard;
+        if g.rollback_after < 1 || !(g.lr_factor > 0.0 && g.lr_factor <= 1.0) || g.max_rollbacks < 0 {
+            return Err(cfg_err(format!(
+                "guard: rollback_after {} must be at least 1, lr_factor {} in (0, 1], max_rollbacks {} at least 0",
+                g.rollback_after, g.lr_factor, g.max_rollbacks
+            )));
+        }
+        if self.stages.is_empty() {
+            return Err(cfg_err("stages: at least one [[stages]] table is needed".into()));
+        }
+        if self.stages[0].from_step != 0 {
+            return Err(cfg_err(format!("stages[0].from_step is {}, expected 0", self.stages[0].from_step)));
+        }
+        for (i, st) in self.stages.iter().enumerate() {
+            let key = |k: &str| format!("stages[{i}].{k}");
+            if i > 0 && st.from_step <= self.stages[i - 1].from_step {
+                return Err(cfg_err(format!(
+                    "{} is {}, expected more than stages[{}].from_step ({})",
+                    key("from_step"),
+                    st.from_step,
+                    i - 1,
+                    self.stages[i - 1].from_step
+                )));
+            }
+            if !(8..=512).contains(&st.resolution) || st.resolution.count_ones() != 1 {
+                return Err(cfg_err(format!("{} is {}, expected a power of two from 8 to 512", key("resolution"), st.resolution)));
+            }
+            if st.num_steps < 3 {
+                return Err(cfg_err(format!("{} is {}, expected at least 3", key("num_steps"), st.num_steps)));
+            }
+            if st.batch_size < 1 || st.batch_split < 1 || st.batch_size % st.batch_split != 0 {
+                return Err(cfg_err(format!(
+                    "{} is {} and {} is {}: expected positive values, the split dividing the batch",
+                    key("batch_size"),
+                    st.batch_size,
+                    key("batch_split"),
+                    st.batch_split
+                )));
+            }
+            if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
+                return Err(cfg_err(format!(
+                    "{} is {}, expected a positive divisor of the {}² rays",
+                    key("regions"),
+                    st.regions,
+                    st.resolution
+                )));
+            }
+            for (k, v) in [("g_lr", st.g_lr), ("d_lr", st.d_lr)] {
+                if let Some(v) = v {
+                    if !(v > 0.0 && v.is_finite()) {
+                        return Err(cfg_err(format!("{} is {v}, expected a positive number", key(k))));
+                    }
+                }
+            }
+        }
+        if let Some(synth) = &self.data.synth {
+            synth.validate().map_err(|e| cfg_err(format!("data.synth: {e}")))?;
+        }
+        Ok(())
+    }
+
+    /// Index of the stage in force at `step`.
+    pub fn stage_index(&self, step: i64) -> usize {
+        self.stages.iter().rposition(|s| s.from_step <= step).unwrap_or(0)
+    }
+
+    pub fn stage(&self, step: i64) -> &Stage {
+        &self.stages[self.stage_index(step)]
+    }
+
+    /// The step of the last resolution change at or before `step` (None before the first).
+    /// Only a change of resolution counts (the release's rule): a stage that changes only
+    /// N or the batch does not restart the fade-in.
+    pub fn switch_step(&self, step: i64) -> Option<i64> {
+        self.stages
+            .windows(2)
+            .filter(|w| w[1].resolution != w[0].resolution && w[1].from_step <= step)
+            .map(|w| w[1].from_step)
+            .next_back()
+    }
+
+    /// The discriminator's fade-in α at `step`.
+    pub fn alpha(&self, step: i64) -> f64 {
+        crate::disc::fade_alpha(step, self.switch_step(step), self.schedule.fade_steps)
+    }
+
+    /// Learning rates (G, D) of the stage at `step`, before any rollback scaling.
+    pub fn learning_rates(&self, step: i64) -> (f64, f64) {
+        let st = self.stage(step);
+        (st.g_lr.unwrap_or(self.optim.g_lr), st.d_lr.unwrap_or(self.optim.d_lr))
+    }
+
+    /// The render config of the stage at `step`.
+    pub fn render_config(&self, step: i64) -> RenderConfig {
+        RenderConfig { num_steps: self.stage(step).num_steps, ..self.render.clone() }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: &str = r#"
+[[stages]]
+from_step = 0
+resolution = 32
+num_steps = 12
+batch_size = 8
+
+[[stages]]
+from_step = 100
+resolution = 32
+num_steps = 16
+batch_size = 8
+
+[[stages]]
+from_step = 200
+resolution = 64
+num_steps = 16
+batch_size = 4
+batch_split = 2
+g_lr = 1e-4
+
+[data]
+path = "data/x"
+"#;
+
+    fn parse(extra: &str) -> Result<TrainConfig> {
+        TrainConfig::from_toml(&format!("{extra}\n{MIN}"), Path::new("/base"))
+    }
+
+    #[test]
+    fn defaults_stages_fade_and_rates() {
+        let c = parse("").unwrap();
+        assert_eq!(c.data.path, Path::new("/base/data/x"));
+        assert_eq!(lexical_join(Path::new("/a/configs"), Path::new("../data/./x")), Path::new("/a/data/x"));
+        assert_eq!(lexical_join(Path::new("configs"), Path::new("../../x")), Path::new("../x"));
+        assert_eq!(c.optim, OptimConfig::default());
+        assert_eq!(c.stage_index(99), 0);
+        assert_eq!(c.stage_index(100), 1);
+        assert_eq!(c.stage_index(10_000), 2);
+        // Only the resolution change at 200 starts a fade.
+        assert_eq!(c.switch_step(150), None);
+        assert_eq!(c.alpha(150), 1.0);
+        assert_eq!(c.switch_step(250), Some(200));
+        assert_eq!(c.alpha(200), 0.0);
+        assert_eq!(c.alpha(200 + 5_000), 0.5);
+        assert_eq!(c.learning_rates(0), (2e-5, 2e-4));
+        assert_eq!(c.learning_rates(200), (1e-4, 2e-4));
+        assert_eq!(c.render_config(150).num_steps, 16);
+        // The resolved config round-trips through TOML.
+        let back = TrainConfig::from_toml(&c.to_toml().unwrap(), Path::new("")).unwrap();
+        assert_eq!(back, c);
+    }
+
+    #[test]
+    fn errors_name_the_key() {
+        let cases = [
+            ("bogus = 1", "bogus"),
+            ("[optim]\ng_lrr = 1.0", "g_lrr"),
+            ("[optim]\ng_lr = \"fast\"", "g_lr"),
+            ("[optim]\ng_lr = -1.0", "optim.g_lr"),
+            ("[optim]\nbeta2 = 1.0", "optim.beta2"),
+            ("[ema]\ndecay = 1.5", "ema.decay"),
+            ("[schedule]\ncheckpoint_interval = 0", "schedule.checkpoint_interval"),
+            ("[generator]\nhidden_dim = 0", "generator.hidden_dim"),
+            ("[discriminator]\nchannels = [1, 2]", "discriminator.channels"),
+            ("[camera]\nfov_deg = 200.0", "camera.fov_deg"),
+            ("[loss]\nr1_interval = 0", "loss.r1_interval"),
+            ("device = \"tpu\"", "device"),
+            ("precision = \"float8\"", "precision"),
+        ];
+        for (extra, key) in cases {
+            let e = parse(extra).unwrap_err().to_string();
+            assert!(e.contains(key), "{extra:?}: {e}");
+        }
+        let bad_stage = MIN.replace("resolution = 64", "resolution = 48");
+        let e = TrainConfig::from_toml(&bad_stage, Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].resolution") && e.contains("power of two"), "{e}");
+        let bad_split = MIN.replace("batch_split = 2", "batch_split = 3");
+        let e = TrainConfig::from_toml(&bad_split, Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].batch_split"), "{e}");
+        let unordered = MIN.replace("from_step = 200", "from_step = 50");
+        let e = TrainConfig::from_toml(&unordered, Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].from_step"), "{e}");
+        let e = TrainConfig::from_toml("[data]\npath = \"x\"", Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages"), "{e}");
+    }
+}

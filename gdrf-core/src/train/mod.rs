@@ -1,0 +1,718 @@
+//! Adversarial training: the discriminator step, then the generator step (the release's
+//! order), with progressive resolution and fade-in, the two-pass patch step, gradient
+//! clipping, Adam, EMA, and a state that checkpoints and resumes exactly.
+//!
+//! Every random number of step k is drawn from (run seed, k, purpose) by
+//! [`StepRng`](crate::rng::StepRng); the real-image order comes from per-epoch
+//! permutations of the same kind. Together with the saved state (weights, EMA, Adam
+//! moments, counters), a run resumed at step k computes the same step k + 1 as the
+//! uninterrupted run, bit for bit on the CPU.
+pub mod config;
+pub mod optim;
+pub mod pass;
+pub mod run;
+pub mod samples;
+
+pub use config::{Stage, TrainConfig};
+pub use pass::{discriminator_pass, generator_pass, FakeBatch};
+
+use crate::checkpoint::{self, Header};
+use crate::data::{self, Dataset};
+use crate::disc::Discriminator;
+use crate::loss::deform_reg::{reg_ray_count, select_samples};
+use crate::loss::{generator_adversarial, generator_regularisation, Losses, Schedule};
+use crate::render::{Noise, RenderedRays, Renderer};
+use crate::rng::{Purpose, RandomSource, StepRng};
+use crate::camera::Poses;
+use crate::{Error, Generator, Result};
+use optim::{clip_grads, copy_vars, grad_norm, zero_grads, Adam, Ema};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tch::{nn, Device, Kind, Tensor};
+
+/// Counters a checkpoint carries besides its tensors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Progress {
+    /// Steps completed: the next step to run.
+    pub step: i64,
+    /// Real images drawn so far (the position in the epoch permutations).
+    pub images_seen: i64,
+    /// Multiplies every learning rate; halved (by `guard.lr_factor`) at each rollback.
+    pub lr_scale: f64,
+    /// Steps whose generator or discriminator update was skipped as non-finite.
+    pub skipped_steps: i64,
+    pub consecutive_bad: i64,
+    pub rollbacks: i64,
+    pub adam_g_t: i64,
+    pub adam_d_t: i64,
+    pub ema_updates: i64,
+    /// Seconds spent in training steps, over all sessions of the run.
+    pub train_seconds: f64,
+}
+
+impl Default for Progress {
+    fn default() -> Self {
+        Self {
+            step: 0,
+            images_seen: 0,
+            lr_scale: 1.0,
+            skipped_steps: 0,
+            consecutive_bad: 0,
+            rollbacks: 0,
+            adam_g_t: 0,
+            adam_d_t: 0,
+            ema_updates: 0,
+            train_seconds: 0.0,
+        }
+    }
+}
+
+/// The `training` header of a checkpoint.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainingHeader {
+    pub progress: Progress,
+    pub stage: usize,
+    pub config: TrainConfig,
+}
+
+/// What one step did.
+#[derive(Debug, Clone)]
+pub struct StepReport {
+    /// The step that ran (0-based).
+    pub step: i64,
+    pub stage: usize,
+    pub resolution: i64,
+    pub batch_size: i64,
+    pub alpha: f64,
+    pub d_total: f64,
+    pub g_total: f64,
+    /// Unweighted terms; the generator's are batch means over its chunks.
+    pub d_terms: Vec<(&'static str, f64)>,
+    pub g_terms: Vec<(&'static str, f64)>,
+    /// Gradient norms before clipping.
+    pub grad_norm_d: f64,
+    pub grad_norm_g: f64,
+    pub lr_g: f64,
+    pub lr_d: f64,
+    pub d_skipped: bool,
+    pub g_skipped: bool,
+    pub seconds: f64,
+    /// Set when this step's failure triggered a rollback: the step the run went back to.
+    pub rolled_back_to: Option<i64>,
+}
+
+impl StepReport {
+    /// The metrics.jsonl line.
+    pub fn to_json(&self, p: &Progress) -> serde_json::Value {
+        let terms = |t: &[(&str, f64)]| t.iter().map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>();
+        serde_json::json!({
+            "step": self.step,
+            "stage": self.stage,
+            "resolution": self.resolution,
+            "batch_size": self.batch_size,
+            "alpha": self.alpha,
+            "d_total": finite_or_null(self.d_total),
+            "g_total": finite_or_null(self.g_total),
+            "d": terms(&self.d_terms),
+            "g": terms(&self.g_terms),
+            "grad_norm_d": finite_or_null(self.grad_norm_d),
+            "grad_norm_g": finite_or_null(self.grad_norm_g),
+            "lr_g": self.lr_g,
+            "lr_d": self.lr_d,
+            "step_seconds": self.seconds,
+            "images_per_second": self.batch_size as f64 / self.seconds.max(1e-9),
+            "d_skipped": self.d_skipped,
+            "g_skipped": self.g_skipped,
+            "skipped_steps": p.skipped_steps,
+            "rollbacks": p.rollbacks,
+            "images_seen": p.images_seen,
+        })
+    }
+}
+
+fn finite_or_null(v: f64) -> serde_json::Value {
+    if v.is_finite() {
+        serde_json::json!(v)
+    } else {
+        serde_json::Value::Null
+    }
+}
+
+/// A training run in memory: both networks, the EMA generator, optimisers and counters.
+pub struct Trainer {
+    pub cfg: TrainConfig,
+    pub run_dir: PathBuf,
+    pub device: Device,
+    pub gvs: nn::VarStore,
+    pub generator: Generator,
+    /// The EMA generator (samples and exports).
+    pub evs: nn::VarStore,
+    pub ema_generator: Generator,
+    pub dvs: nn::VarStore,
+    pub disc: Discriminator,
+    pub adam_g: Adam,
+    pub adam_d: Adam,
+    pub ema: Ema,
+    pub progress: Progress,
+    datasets: BTreeMap<i64, Dataset>,
+    permutation: Option<(i64, Vec<i64>)>,
+    /// Injected faults already fired (not saved: a replay after a rollback runs clean).
+    injected: BTreeSet<i64>,
+}
+
+impl Trainer {
+    /// A fresh run: networks initialised from the run seed. Nothing is written yet.
+    pub fn new(cfg: TrainConfig, run_dir: &Path) -> Result<Self> {
+        cfg.validate()?;
+        let device = crate::device::select(&cfg.device)?;
+        // The initial weights come from libtorch's generator, seeded once here (as the
+        // release does before building its models); training draws never touch it.
+        tch::manual_seed(cfg.seed as i64);
+        let gvs = nn::VarStore::new(device);
+        let generator = Generator::new(&gvs.root(), &cfg.generator)?;
+        let dvs = nn::VarStore::new(device);
+        let disc = Discriminator::with_config(&dvs.root(), &cfg.discriminator)?;
+        let evs = nn::VarStore::new(device);
+        let ema_generator = Generator::new(&evs.root(), &cfg.generator)?;
+        copy_vars(&evs, &gvs);
+        let o = &cfg.optim;
+        let adam_g = Adam::new(&gvs, o.beta1, o.beta2, o.eps);
+        let adam_d = Adam::new(&dvs, o.beta1, o.beta2, o.eps);
+        let ema = Ema { decay: cfg.ema.decay, warmup: cfg.ema.warmup, updates: 0 };
+        Ok(Self {
+            cfg,
+            run_dir: run_dir.to_path_buf(),
+            device,
+            gvs,
+            generator,
+            evs,
+            ema_generator,
+            dvs,
+            disc,
+            adam_g,
+            adam_d,
+            ema,
+            progress: Progress::default(),
+            datasets: BTreeMap::new(),
+            permutation: None,
+            injected: BTreeSet::new(),
+        })
+    }
+
+    /// Continues the run in `run_dir` from its newest checkpoint. `device` overrides the
+    /// saved config's device (the run continues identically elsewhere).
+    pub fn resume(run_dir: &Path, device: Option<&str>) -> Result<Self> {
+        let (_, path) = run::latest_checkpoint(run_dir)?;
+        let mut t = Self::from_checkpoint(&path, run_dir, device)?;
+        run::truncate_metrics(run_dir, t.progress.step)?;
+        t.injected.clear();
+        Ok(t)
+    }
+
+    fn from_checkpoint(path: &Path, run_dir: &Path, device: Option<&str>) -> Result<Self> {
+        let ckpt = checkpoint::load(path)?;
+        let bad = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
+        if ckpt.header.model != "training_state" {
+            return Err(bad(format!("it holds a '{}', not a training state", ckpt.header.model)));
+        }
+        let th: TrainingHeader = serde_json::from_value(ckpt.header.training.clone().ok_or_else(|| bad("no training header".into()))?)
+            .map_err(|e| bad(format!("bad training header: {e}")))?;
+        let mut cfg = th.config;
+        if let Some(d) = device {
+            cfg.device = d.to_string();
+        }
+        let mut t = Self::new(cfg, run_dir)?;
+        let split = |prefix: &str| -> BTreeMap<String, Tensor> {
+            ckpt.tensors.iter().filter_map(|(n, v)| n.strip_prefix(prefix).map(|n| (n.to_string(), v.shallow_clone()))).collect()
+        };
+        for (prefix, vs) in [("generator.", &mut t.gvs), ("ema.", &mut t.evs), ("discriminator.", &mut t.dvs)] {
+            let part = checkpoint::Checkpoint { path: path.to_path_buf(), header: ckpt.header.clone(), tensors: split(prefix) };
+            part.load_into(vs).map_err(|e| bad(format!("{prefix}*: {e}")))?;
+        }
+        let p = th.progress;
+        t.adam_g.load(&ckpt.tensors, "adam_g.", p.adam_g_t)?;
+        t.adam_d.load(&ckpt.tensors, "adam_d.", p.adam_d_t)?;
+        t.ema.updates = p.ema_updates;
+        t.progress = p;
+        Ok(t)
+    }
+
+    /// Generates the procedural dataset if the config asks for one that is not there yet.
+    pub fn prepare_data(&self, progress: &(dyn Fn() + Sync)) -> Result<data::Prepared> {
+        self.cfg.data.prepare(self.cfg.threads, progress)
+    }
+
+    /// The training images at `res` (loaded through the cache on first use).
+    pub fn dataset(&mut self, res: i64) -> Result<&Dataset> {
+        if !self.datasets.contains_key(&res) {
+            let opts = self.cfg.data.load_options(res as usize, self.cfg.threads);
+            let ds = data::load(&self.cfg.data.path, &opts, &|| {})?;
+            if ds.is_empty() {
+                return Err(Error::Data { path: self.cfg.data.path.clone(), reason: "the dataset holds no images".into() });
+            }
+            self.datasets.insert(res, ds);
+        }
+        Ok(&self.datasets[&res])
+    }
+
+    fn rng(&self, step: i64, purpose: Purpose) -> StepRng {
+        StepRng::new(self.cfg.seed, step as u64, purpose, Kind::Float, self.device)
+    }
+
+    /// Indices of the next `b` real images: consecutive positions in per-epoch random
+    /// permutations of the `n` images (each epoch's permutation drawn from the seed).
+    fn real_indices(&mut self, b: i64, n: i64) -> Vec<i64> {
+        (0..b)
+            .map(|i| {
+                let pos = self.progress.images_seen + i;
+                let epoch = pos / n;
+                if self.permutation.as_ref().map(|p| (p.0, p.1.len() as i64)) != Some((epoch, n)) {
+                    let mut perm: Vec<i64> = (0..n).collect();
+                    let mut r = StepRng::new(self.cfg.seed, epoch as u64, Purpose::RealIndices, Kind::Float, Device::Cpu);
+                    let u = r.u64s(n as usize);
+                    for k in (1..n as usize).rev() {
+                        perm.swap(k, (u[k] % (k as u64 + 1)) as usize);
+                    }
+                    self.permutation = Some((epoch, perm));
+                }
+                self.permutation.as_ref().unwrap().1[(pos % n) as usize]
+            })
+            .collect()
+    }
+
+    /// Runs one step (D step, then G step) and returns what happened. A non-finite loss or
+    /// gradient skips that network's update; `guard.rollback_after` such steps in a row
+    /// roll back to the newest checkpoint with the learning rates scaled down.
+    pub fn step(&mut self) -> Result<StepReport> {
+        let start = Instant::now();
+        let step = self.progress.step;
+        let stage_index = self.cfg.stage_index(step);
+        let stage = self.cfg.stages[stage_index].clone();
+        let alpha = self.cfg.alpha(step);
+        let (g_lr, d_lr) = self.cfg.learning_rates(step);
+        let (g_lr, d_lr) = (g_lr * self.progress.lr_scale, d_lr * self.progress.lr_scale);
+        let at = Schedule { step, alpha };
+        let (b, res) = (stage.batch_size, stage.resolution);
+
+        // Real batch.
+        let n_real = self.dataset(res)?.len() as i64;
+        let idx = self.real_indices(b, n_real);
+        let ds = &self.datasets[&res];
+        let flips: Option<Vec<bool>> =
+            ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
+        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
+        let real = real.to_device(self.device);
+        let real_poses = real_poses.map(|p| p.to_device(self.device));
+
+        let d = self.discriminator_step(&stage, at, &real, real_poses.as_ref(), d_lr)?;
+        let g = self.generator_step(&stage, at, g_lr)?;
+
+        let p = &mut self.progress;
+        p.step += 1;
+        p.images_seen += b;
+        let bad = d.skipped || g.skipped;
+        if bad {
+            p.skipped_steps += 1;
+            p.consecutive_bad += 1;
+        } else {
+            p.consecutive_bad = 0;
+        }
+        let seconds = start.elapsed().as_secs_f64();
+        p.train_seconds += seconds;
+        let mut report = StepReport {
+            step,
+            stage: stage_index,
+            resolution: res,
+            batch_size: b,
+            alpha,
+            d_total: d.total,
+            g_total: g.total,
+            d_terms: d.terms,
+            g_terms: g.terms,
+            grad_norm_d: d.norm,
+            grad_norm_g: g.norm,
+            lr_g: g_lr,
+            lr_d: d_lr,
+            d_skipped: d.skipped,
+            g_skipped: g.skipped,
+            seconds,
+            rolled_back_to: None,
+        };
+        if bad && self.progress.consecutive_bad >= self.cfg.guard.rollback_after {
+            report.rolled_back_to = Some(self.rollback()?);
+        }
+        Ok(report)
+    }
+
+    fn renderer(&self, stage: &Stage) -> (crate::RenderConfig, crate::CameraConfig) {
+        (crate::RenderConfig { num_steps: stage.num_steps, ..self.cfg.render.clone() }, self.cfg.camera.clone())
+    }
+
+    /// The live generator's renderer at the configured precision.
+    fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig, cam: &'a crate::CameraConfig) -> Result<Renderer<'a>> {
+        let mut r = Renderer::new(&self.generator, cam, rc)?;
+        r.field.compute_kind = self.cfg.precision.compute_kind();
+        Ok(r)
+    }
+
+    fn noise(&self, step: i64, jitter: Purpose, importance: Purpose, shape: [i64; 3]) -> Noise {
+        Noise { jitter: Some(self.rng(step, jitter).uniform(&shape)), importance: Some(self.rng(step, importance).uniform(&shape)) }
+    }
+
+    fn discriminator_step(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        lr: f64,
+    ) -> Result<Update> {
+        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let step = at.step;
+        let latent = self.cfg.generator.latent_dim as i64;
+        let z = self.rng(step, Purpose::DiscCodes).normal(&[b, latent]);
+        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, Purpose::DiscPoses));
+        let noise = self.noise(step, Purpose::DiscJitter, Purpose::DiscImportance, [b, res * res, n]);
+        let (rc, cam) = self.renderer(stage);
+        let renderer = self.live_renderer(&rc, &cam)?;
+        // Fakes from the live generator, rendered without gradients (the release's D step).
+        let lat = tch::no_grad(|| self.generator.latents(&z, &z, None));
+        let fake = FakeBatch { latents: &lat, poses: &poses, z: Some(&z), resolution: res, regions: stage.regions, noise: &noise };
+        let losses = discriminator_pass(&renderer, &self.disc, real, real_poses, &fake, at, &self.cfg.loss)?;
+        zero_grads(&self.dvs);
+        losses.total.backward();
+        let update = self.apply(Net::D, &losses, lr);
+        zero_grads(&self.dvs);
+        Ok(update)
+    }
+
+    fn generator_step(&mut self, stage: &Stage, at: Schedule, lr: f64) -> Result<Update> {
+        let losses = self.generator_gradients(stage, at)?;
+        let update = self.apply(Net::G, &losses, lr);
+        zero_grads(&self.gvs);
+        Ok(update)
+    }
+
+    /// Computes the generator's gradients of the step about to run and leaves them in
+    /// the generator's variables, without updating anything (diagnostics and tests:
+    /// e.g. the two-pass patch step must give the single-pass gradient). Returns the
+    /// loss terms.
+    pub fn generator_gradients_now(&mut self) -> Result<Vec<(&'static str, f64)>> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        Ok(self.generator_gradients(&stage, at)?.values())
+    }
+
+    /// Renders the generator's batch chunk by chunk and accumulates the gradient of the
+    /// batch-mean loss into the generator's variables (D frozen throughout).
+    fn generator_gradients(&mut self, stage: &Stage, at: Schedule) -> Result<Losses> {
+        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let step = at.step;
+        let latent = self.cfg.generator.latent_dim as i64;
+        let z = self.rng(step, Purpose::GenCodes).normal(&[b, latent]);
+        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, Purpose::GenPoses));
+        let noise = self.noise(step, Purpose::GenJitter, Purpose::GenImportance, [b, res * res, n]);
+        let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
+        let reg_rays = Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
+            .view([b, n_reg])
+            .to_device(self.device);
+        let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
+
+        // The generator step leaves D's parameters alone: frozen, they get no gradient.
+        self.dvs.freeze();
+        zero_grads(&self.gvs);
+        let split = stage.batch_split;
+        let chunk = b / split;
+        let mut sums: Vec<(&'static str, f64)> = Vec::new();
+        let mut total = 0.0;
+        let result = (|| -> Result<()> {
+            for c in 0..split {
+                let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
+                let z = sl(&z);
+                let poses = poses.narrow(c * chunk, chunk);
+                let noise = Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
+                let losses = self.generator_chunk(stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
+                total += losses.total.double_value(&[]) / split as f64;
+                for (i, (k, v)) in losses.values().into_iter().enumerate() {
+                    if i == sums.len() {
+                        sums.push((k, 0.0));
+                    }
+                    sums[i].1 += v / split as f64;
+                }
+            }
+            Ok(())
+        })();
+        self.dvs.unfreeze();
+        result?;
+        Ok(Losses { total: Tensor::from(total), terms: sums.iter().map(|(k, v)| (*k, Tensor::from(*v))).collect() })
+    }
+
+    /// Renders one chunk of the generator's batch, backpropagates its share of the loss
+    /// (1/split of the chunk mean) into G's gradients and returns its (unscaled) losses.
+    #[allow(clippy::too_many_arguments)]
+    fn generator_chunk(
+        &self,
+        stage: &Stage,
+        at: Schedule,
+        z: &Tensor,
+        poses: &Poses,
+        noise: &Noise,
+        reg_rays: &Tensor,
+        split: f64,
+        inject: bool,
+    ) -> Result<Losses> {
+        let (rc, cam) = self.renderer(stage);
+        let renderer = self.live_renderer(&rc, &cam)?;
+        let gen = &self.generator;
+        let cfg = &self.cfg.loss;
+        let res = stage.resolution;
+        let fault = if inject { f64::NAN } else { 1.0 };
+        let target = poses.stacked();
+        if stage.regions == 1 {
+            let lat = gen.latents(z, z, None);
+            let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
+            let mut losses = generator_pass(&renderer, &self.disc, &fake, Some(reg_rays), at, cfg)?;
+            losses.total = losses.total * fault;
+            (&losses.total / split).backward();
+            return Ok(losses);
+        }
+        // The release's two-pass patch step: render without gradients, take D's gradient
+        // w.r.t. the image alone, then re-render each band with gradients at the very
+        // sample depths of the first pass and backpropagate its slice of that gradient.
+        let (img, parts) = tch::no_grad(|| {
+            let lat = gen.latents(z, z, None);
+            renderer.render_regions(&lat, poses, res, stage.regions, noise)
+        })?;
+        let img = img.detach().set_requires_grad(true);
+        let d = self.disc.forward(&img, at.alpha)?;
+        let mut adv = generator_adversarial(&d, &target, Some(z), at, cfg)?;
+        adv.total = adv.total * fault;
+        let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
+        // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.
+        let b = g_img.size()[0];
+        let g_rays = g_img.reshape([b, 3, res * res]).permute([0, 2, 1]) * 2.0;
+        let rays = renderer.region_rays(poses, res, stage.regions)?;
+        let len = res * res / stage.regions;
+        for (k, (part, ray)) in parts.iter().zip(&rays).enumerate() {
+            // Fresh latents per band: each backward frees its own graph.
+            let lat = gen.latents(z, z, None);
+            let rr = renderer.render_at_depths(&lat, ray, &part.z)?;
+            (&rr.pixel * g_rays.narrow(1, k as i64 * len, len)).sum(Kind::Float).backward();
+        }
+        let lat = gen.latents(z, z, None);
+        let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
+        let reg = generator_regularisation(gen.regularisers(&lat.shape, &samples, cfg.reg.variant), &cfg.reg);
+        (&reg.total / split).backward();
+        Ok(adv.merge(reg))
+    }
+
+    /// Checks finiteness, clips and applies one network's update.
+    fn apply(&mut self, net: Net, losses: &Losses, lr: f64) -> Update {
+        let vs = match net {
+            Net::G => &self.gvs,
+            Net::D => &self.dvs,
+        };
+        let total = losses.total.double_value(&[]);
+        let norm = grad_norm(vs);
+        let ok = total.is_finite() && norm.is_finite();
+        if ok {
+            if self.cfg.optim.grad_clip > 0.0 {
+                clip_grads(vs, norm, self.cfg.optim.grad_clip);
+            }
+            match net {
+                Net::G => {
+                    self.adam_g.step(&self.gvs, lr);
+                    self.ema.update(&self.evs, &self.gvs);
+                    self.progress.adam_g_t = self.adam_g.t;
+                    self.progress.ema_updates = self.ema.updates;
+                }
+                Net::D => {
+                    self.adam_d.step(&self.dvs, lr);
+                    self.progress.adam_d_t = self.adam_d.t;
+                }
+            }
+        }
+        Update { total, terms: losses.values(), norm, skipped: !ok }
+    }
+
+    /// Goes back to the newest checkpoint with the learning rates scaled by
+    /// `guard.lr_factor`; returns the step it went back to.
+    fn rollback(&mut self) -> Result<i64> {
+        let p = self.progress.clone();
+        if p.rollbacks >= self.cfg.guard.max_rollbacks {
+            return Err(Error::Invalid(format!(
+                "training diverged: {} consecutive non-finite steps at step {} after {} rollback(s) (guard.max_rollbacks)",
+                p.consecutive_bad, p.step, p.rollbacks
+            )));
+        }
+        let (_, path) = run::latest_checkpoint(&self.run_dir)?;
+        let back = Self::from_checkpoint(&path, &self.run_dir, Some(&self.cfg.device))?;
+        let to = back.progress.step;
+        let injected = std::mem::take(&mut self.injected);
+        let datasets = std::mem::take(&mut self.datasets);
+        *self = back;
+        self.injected = injected;
+        self.datasets = datasets;
+        self.progress.lr_scale = p.lr_scale * self.cfg.guard.lr_factor;
+        self.progress.rollbacks = p.rollbacks + 1;
+        self.progress.consecutive_bad = 0;
+        self.progress.skipped_steps = p.skipped_steps;
+        self.progress.train_seconds = p.train_seconds;
+        run::truncate_metrics(&self.run_dir, to)?;
+        run::append_metrics(
+            &self.run_dir,
+            &serde_json::json!({"step": to, "event": "rollback", "from_step": p.step, "lr_scale": self.progress.lr_scale}),
+        )?;
+        Ok(to)
+    }
+
+    /// The checkpoint's tensors: both networks, the EMA and both optimisers' moments.
+    fn state_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::new();
+        for (prefix, vs) in [("generator.", &self.gvs), ("ema.", &self.evs), ("discriminator.", &self.dvs)] {
+            let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (format!("{prefix}{n}"), t)).collect();
+            v.sort_by(|a, b| a.0.cmp(&b.0));
+            out.extend(v);
+        }
+        out.extend(self.adam_g.named_tensors("adam_g."));
+        out.extend(self.adam_d.named_tensors("adam_d."));
+        out
+    }
+
+    fn header(&self, model: &str) -> Header {
+        let mut h = Header::generator(self.cfg.generator.clone(), Some(self.cfg.camera.clone()));
+        h.model = model.into();
+        let p = &self.progress;
+        h.info.insert("step".into(), p.step.to_string());
+        h.info.insert("images_seen".into(), p.images_seen.to_string());
+        h.info.insert("train_seconds".into(), format!("{:.0}", p.train_seconds));
+        h
+    }
+
+    /// Writes the training state after `progress.step` steps (atomically; refused if any
+    /// tensor is non-finite), exports the EMA generator to RUN_DIR/generator.safetensors,
+    /// and keeps the newest `schedule.keep_checkpoints` checkpoints.
+    pub fn save_checkpoint(&self) -> Result<PathBuf> {
+        let dir = self.run_dir.join(run::CHECKPOINTS);
+        std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
+        let path = dir.join(run::checkpoint_name(self.progress.step));
+        let mut header = self.header("training_state");
+        let th = TrainingHeader { progress: self.progress.clone(), stage: self.cfg.stage_index(self.progress.step), config: self.cfg.clone() };
+        header.training = Some(serde_json::to_value(&th).map_err(|e| Error::Invalid(e.to_string()))?);
+        checkpoint::save(&path, &self.state_tensors(), &header)?;
+        self.export_generator(&self.run_dir.join(run::GENERATOR))?;
+        run::prune_checkpoints(&self.run_dir, self.cfg.schedule.keep_checkpoints)?;
+        Ok(path)
+    }
+
+    /// Saves the EMA generator as a plain generator checkpoint.
+    pub fn export_generator(&self, path: &Path) -> Result<()> {
+        checkpoint::save_generator(path, &self.evs, &self.header("generator"))
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Net {
+    G,
+    D,
+}
+
+struct Update {
+    total: f64,
+    terms: Vec<(&'static str, f64)>,
+    norm: f64,
+    skipped: bool,
+}
+
+/// When a [`Trainer::run`] session stops (besides `schedule.total_steps`).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RunLimits {
+    /// Steps to run in this session at most.
+    pub steps: Option<i64>,
+    /// Wall-clock seconds for this session at most (checked between steps).
+    pub seconds: Option<f64>,
+}
+
+/// Why a [`Trainer::run`] session ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stopped {
+    /// `schedule.total_steps` reached.
+    Finished,
+    /// A [`RunLimits`] bound reached.
+    Limit,
+    /// The stop flag was raised (Ctrl-C, SIGTERM).
+    Interrupted,
+}
+
+impl Trainer {
+    /// Trains until the schedule ends, a limit is reached or `stop` is raised, logging
+    /// to metrics.jsonl, checkpointing every `checkpoint_interval` steps and writing
+    /// previews every `sample_interval` steps. Whatever ends the session, it ends with a
+    /// checkpoint of the last step. A fresh run first writes its resolved config, a
+    /// step-0 checkpoint (the rollback target of early failures) and step-0 previews.
+    pub fn run(
+        &mut self,
+        limits: RunLimits,
+        stop: &std::sync::atomic::AtomicBool,
+        mut on_step: impl FnMut(&StepReport, &Progress),
+    ) -> Result<Stopped> {
+        use std::sync::atomic::Ordering;
+        std::fs::create_dir_all(&self.run_dir).map_err(|source| Error::Io { path: self.run_dir.clone(), source })?;
+        if run::list_checkpoints(&self.run_dir)?.is_empty() {
+            checkpoint::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_toml()?.as_bytes())?;
+            self.save_checkpoint()?;
+            if self.cfg.schedule.sample_interval > 0 {
+                samples::write_previews(self)?;
+            }
+        }
+        let start = Instant::now();
+        let first = self.progress.step;
+        let s = self.cfg.schedule.clone();
+        let mut saved_at = self.progress.step;
+        let stopped = loop {
+            if self.progress.step >= s.total_steps {
+                break Stopped::Finished;
+            }
+            if stop.load(Ordering::SeqCst) {
+                break Stopped::Interrupted;
+            }
+            if limits.steps.is_some_and(|n| self.progress.step - first >= n)
+                || limits.seconds.is_some_and(|t| start.elapsed().as_secs_f64() >= t)
+            {
+                break Stopped::Limit;
+            }
+            let report = self.step()?;
+            if let Some(to) = report.rolled_back_to {
+                saved_at = to;
+            } else if report.step % s.log_interval == 0 || report.d_skipped || report.g_skipped {
+                run::append_metrics(&self.run_dir, &report.to_json(&self.progress))?;
+            }
+            on_step(&report, &self.progress);
+            let done = self.progress.step;
+            if done % s.checkpoint_interval == 0 && report.rolled_back_to.is_none() {
+                self.save_checkpoint()?;
+                saved_at = done;
+            }
+            if s.sample_interval > 0 && done % s.sample_interval == 0 {
+                samples::write_previews(self)?;
+            }
+        };
+        if saved_at != self.progress.step {
+            self.save_checkpoint()?;
+            if s.sample_interval > 0 {
+                samples::write_previews(self)?;
+            }
+        }
+        Ok(stopped)
+    }
+
+    /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).
+    pub fn parameter_counts(&self, res: i64) -> (i64, i64, i64) {
+        let count = |vs: &nn::VarStore| vs.variables().values().map(|t| t.numel() as i64).sum::<i64>();
+        let used = crate::disc::used_parameters(&self.disc, res).unwrap_or(0);
+        (count(&self.gvs), count(&self.dvs), used)
+    }
+}

@@ -1,0 +1,60 @@
+//! One forward pass of each player: render, judge, and hand the judgement to the losses
+//! (which never render themselves).
+use crate::camera::Poses;
+use crate::disc::Discriminator;
+use crate::loss::deform_reg::select_samples;
+use crate::loss::{discriminator_loss, generator_loss, LossConfig, Losses, Schedule};
+use crate::render::{Noise, RenderedRays, Renderer};
+use crate::{Latents, Result};
+use tch::Tensor;
+
+/// A batch of generated images: what drives it and how it is seen.
+pub struct FakeBatch<'a> {
+    pub latents: &'a Latents,
+    pub poses: &'a Poses,
+    /// The codes, for the latent-prediction loss (only read when its weight is not 0).
+    pub z: Option<&'a Tensor>,
+    /// Image side and the number of horizontal bands it is rendered in.
+    pub resolution: i64,
+    pub regions: i64,
+    /// Renderer noise (drawn from libtorch's generator when absent).
+    pub noise: &'a Noise,
+}
+
+/// The generator's loss in one pass with gradients: render (all bands), let `disc` judge
+/// the images, pick the regulariser samples (`reg_rays: (B, n)` fixes the ray draw) and
+/// compute the regularisers through the generator. Freeze D's variables first if its
+/// parameters must not receive gradients.
+pub fn generator_pass(
+    renderer: &Renderer,
+    disc: &Discriminator,
+    fake: &FakeBatch,
+    reg_rays: Option<&Tensor>,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
+    let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
+    let d = disc.forward(&img, at.alpha)?;
+    let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, reg_rays);
+    let reg = renderer.generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
+    generator_loss(&d, &fake.poses.stacked(), fake.z, reg, at, cfg)
+}
+
+/// The discriminator's loss: fakes rendered without gradients, D on the reals (made to
+/// require grad when R1 is due, unless they already do) and on the fakes.
+pub fn discriminator_pass(
+    renderer: &Renderer,
+    disc: &Discriminator,
+    real: &Tensor,
+    real_poses: Option<&Tensor>,
+    fake: &FakeBatch,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
+    let fakes =
+        tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?.0;
+    let real = if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(cfg.r1_due(at.step)) };
+    let dr = disc.forward(&real, at.alpha)?;
+    let df = disc.forward(&fakes, at.alpha)?;
+    discriminator_loss(&dr, &real, real_poses, &df, &fake.poses.stacked(), fake.z, at, cfg)
+}

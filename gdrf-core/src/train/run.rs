@@ -1,0 +1,97 @@
+//! The run directory: checkpoints (the last K kept), the exported EMA generator, the
+//! resolved config, metrics.jsonl and preview images.
+//!
+//! ```text
+//! RUN_DIR/config.toml                    the resolved config (every default written out)
+//! RUN_DIR/checkpoints/step-NNNNNNNN.safetensors   training state after N steps
+//! RUN_DIR/generator.safetensors          EMA generator of the latest checkpoint
+//! RUN_DIR/metrics.jsonl                  one JSON object per logged step or event
+//! RUN_DIR/samples/step-NNNNNNNN-{samples,swap,template}.png and latest-*.png
+//! ```
+use crate::{Error, Result};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+pub const CHECKPOINTS: &str = "checkpoints";
+pub const METRICS: &str = "metrics.jsonl";
+pub const CONFIG: &str = "config.toml";
+pub const GENERATOR: &str = "generator.safetensors";
+pub const SAMPLES: &str = "samples";
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
+    move |source| Error::Io { path: path.to_path_buf(), source }
+}
+
+/// File name of the checkpoint after `step` steps.
+pub fn checkpoint_name(step: i64) -> String {
+    format!("step-{step:08}.safetensors")
+}
+
+/// Checkpoints of a run, oldest first, with their step counts.
+pub fn list_checkpoints(run_dir: &Path) -> Result<Vec<(i64, PathBuf)>> {
+    let dir = run_dir.join(CHECKPOINTS);
+    if !dir.is_dir() {
+        return Ok(Vec::new());
+    }
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir(&dir).map_err(io(&dir))? {
+        let path = entry.map_err(io(&dir))?.path();
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        if let Some(step) = name.strip_prefix("step-").and_then(|s| s.strip_suffix(".safetensors")) {
+            if let Ok(step) = step.parse::<i64>() {
+                out.push((step, path));
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// The newest checkpoint, or an error that says what the folder holds.
+pub fn latest_checkpoint(run_dir: &Path) -> Result<(i64, PathBuf)> {
+    list_checkpoints(run_dir)?.pop().ok_or_else(|| Error::Data {
+        path: run_dir.to_path_buf(),
+        reason: format!("no checkpoint in {CHECKPOINTS}/ (expected step-NNNNNNNN.safetensors); is this a gdrf-train run directory?"),
+    })
+}
+
+/// Removes all but the newest `keep` checkpoints.
+pub fn prune_checkpoints(run_dir: &Path, keep: usize) -> Result<()> {
+    let all = list_checkpoints(run_dir)?;
+    for (_, path) in all.iter().take(all.len().saturating_sub(keep)) {
+        std::fs::remove_file(path).map_err(io(path))?;
+    }
+    Ok(())
+}
+
+/// Appends one JSON line to metrics.jsonl (a whole line per write, flushed).
+pub fn append_metrics(run_dir: &Path, line: &serde_json::Value) -> Result<()> {
+    let path = run_dir.join(METRICS);
+    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
+    let mut text = serde_json::to_string(line).map_err(|e| Error::Invalid(e.to_string()))?;
+    text.push('\n');
+    f.write_all(text.as_bytes()).map_err(io(&path))?;
+    f.flush().map_err(io(&path))
+}
+
+/// Reads metrics.jsonl; a torn last line (a crash mid-write) is ignored.
+pub fn read_metrics(run_dir: &Path) -> Result<Vec<serde_json::Value>> {
+    let path = run_dir.join(METRICS);
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    Ok(text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect())
+}
+
+/// Keeps only the metrics of steps before `step` (and events before it), so a resumed
+/// run does not log the replayed steps twice. Rewritten atomically.
+pub fn truncate_metrics(run_dir: &Path, step: i64) -> Result<()> {
+    let path = run_dir.join(METRICS);
+    if !path.exists() {
+        return Ok(());
+    }
+    let kept: Vec<String> = read_metrics(run_dir)?
+        .into_iter()
+        .filter(|v| v["step"].as_i64().is_some_and(|s| s < step))
+        .map(|v| v.to_string() + "\n")
+        .collect();
+    crate::checkpoint::write_atomic(&path, kept.concat().as_bytes())
+}

@@ -1,0 +1,73 @@
+//! `gdrf-train plot RUN_DIR`: loss curves and training health from metrics.jsonl.
+use anyhow::{bail, Result};
+use clap::Args;
+use gdrf_core::plot::{draw_panels, smooth, Panel, Series};
+use gdrf_core::train::run;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct PlotArgs {
+    /// A run directory written by `gdrf-train --config`.
+    run_dir: PathBuf,
+    /// Output PNG (default: RUN_DIR/losses.png).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Moving-average window in logged steps (GAN losses are noisy; 1 = raw).
+    #[arg(long, default_value_t = 25)]
+    smooth: usize,
+}
+
+/// (panel title, log y axis, [(series name, JSON path)]).
+type PanelSpec = (&'static str, bool, &'static [(&'static str, &'static str)]);
+
+const PANELS: &[PanelSpec] = &[
+    ("discriminator", false, &[("d_real", "d.d_real"), ("d_fake", "d.d_fake"), ("d_total", "d_total")]),
+    ("generator adversarial", false, &[("g_adv", "g.g_adv"), ("g_total", "g_total")]),
+    ("pose 1-cos", true, &[("g_pose", "g.g_pose"), ("d_pose_fake", "d.d_pose_fake"), ("d_pose_real", "d.d_pose_real")]),
+    ("r1", true, &[("d_r1", "d.d_r1")]),
+    (
+        "regularisers",
+        true,
+        &[
+            ("correction", "g.reg_correction"),
+            ("smoothness", "g.reg_smoothness"),
+            ("rigidity", "g.reg_rigidity"),
+            ("normal", "g.reg_normal"),
+        ],
+    ),
+    ("grad norm before clip", true, &[("g", "grad_norm_g"), ("d", "grad_norm_d")]),
+    ("learning rate", true, &[("g", "lr_g"), ("d", "lr_d")]),
+    ("images/s", false, &[("images/s", "images_per_second")]),
+];
+
+fn lookup(v: &serde_json::Value, path: &str) -> f64 {
+    path.split('.').fold(v, |v, k| &v[k]).as_f64().unwrap_or(f64::NAN)
+}
+
+pub fn plot(a: PlotArgs) -> Result<()> {
+    let records: Vec<_> = run::read_metrics(&a.run_dir)?.into_iter().filter(|r| r.get("event").is_none()).collect();
+    if records.is_empty() {
+        bail!("{}: metrics.jsonl holds no logged step yet", a.run_dir.display());
+    }
+    let panels: Vec<Panel> = PANELS
+        .iter()
+        .map(|(title, log_y, series)| Panel {
+            title: title.to_string(),
+            log_y: *log_y,
+            series: series
+                .iter()
+                .map(|(name, path)| {
+                    let pts: Vec<(f64, f64)> = records.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect();
+                    let k = if title.starts_with("learning") { 1 } else { a.smooth };
+                    Series { name: name.to_string(), points: smooth(&pts, k) }
+                })
+                .filter(|s| s.points.iter().any(|p| p.1.is_finite()))
+                .collect(),
+        })
+        .collect();
+    let img = draw_panels(&panels, 4, 360, 240);
+    let out = a.out.unwrap_or_else(|| a.run_dir.join("losses.png"));
+    gdrf_core::io::save_png(&out, &img)?;
+    println!("wrote {} ({} logged steps, moving average over {})", out.display(), records.len(), a.smooth);
+    Ok(())
+}

@@ -1,0 +1,199 @@
+//! `gdrf-train --config FILE` / `--resume RUN_DIR` / `--print-config FILE`: argument
+//! handling, progress display and signals around [`gdrf_core::train::Trainer::run`].
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use gdrf_core::train::{run, samples, RunLimits, Stopped, TrainConfig, Trainer};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// Start a training run from this config (TOML; see configs/).
+    #[arg(long, value_name = "TOML", conflicts_with_all = ["resume", "print_config"])]
+    config: Option<PathBuf>,
+    /// Continue the run in RUN_DIR from its newest checkpoint, exactly where it stopped
+    /// (the config saved in the checkpoint is used).
+    #[arg(long, value_name = "RUN_DIR", conflicts_with = "print_config")]
+    resume: Option<PathBuf>,
+    /// Print the resolved config (every default filled in) and exit.
+    #[arg(long, value_name = "TOML")]
+    print_config: Option<PathBuf>,
+    /// Run directory of a new run (default: runs/<config file name>).
+    #[arg(long, value_name = "DIR", requires = "config")]
+    run_dir: Option<PathBuf>,
+    /// Start over in a run directory that already holds a run (its checkpoints, metrics
+    /// and samples are removed first).
+    #[arg(long, requires = "config")]
+    force: bool,
+    /// Stop this session after N steps (with a checkpoint); `--resume` continues.
+    #[arg(long, value_name = "N")]
+    steps: Option<i64>,
+    /// Stop this session after about M minutes (checked between steps, with a checkpoint).
+    #[arg(long, value_name = "M")]
+    minutes: Option<f64>,
+    /// auto, cpu, cuda or cuda:N (overrides the config's `device`).
+    #[arg(long)]
+    device: Option<String>,
+    /// libtorch threads (overrides the config's `threads`; 0 = all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// No progress bar (one line per logged step instead), e.g. for logs of background runs.
+    #[arg(long)]
+    quiet: bool,
+}
+
+impl TrainArgs {
+    pub fn any(&self) -> bool {
+        self.config.is_some() || self.resume.is_some() || self.print_config.is_some()
+    }
+}
+
+fn default_run_dir(config: &Path) -> PathBuf {
+    let stem = config.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "run".into());
+    PathBuf::from("runs").join(stem)
+}
+
+pub fn train(a: TrainArgs) -> Result<()> {
+    if let Some(path) = &a.print_config {
+        let cfg = TrainConfig::load(path)?;
+        print!("{}", cfg.to_toml()?);
+        return Ok(());
+    }
+    if a.steps.is_some_and(|n| n < 1) || a.minutes.is_some_and(|m| !(m > 0.0)) {
+        bail!("--steps and --minutes must be positive");
+    }
+    let mut trainer = match (&a.config, &a.resume) {
+        (Some(path), None) => {
+            let mut cfg = TrainConfig::load(path)?;
+            if let Some(d) = &a.device {
+                cfg.device = d.clone();
+            }
+            if let Some(t) = a.threads {
+                cfg.threads = t;
+            }
+            cfg.validate()?;
+            let run_dir = a.run_dir.clone().unwrap_or_else(|| default_run_dir(path));
+            if !run::list_checkpoints(&run_dir)?.is_empty() {
+                if !a.force {
+                    bail!(
+                        "{} already holds a run; continue it with `gdrf-train --resume {}`, or pass --force to start over",
+                        run_dir.display(),
+                        run_dir.display()
+                    );
+                }
+                for sub in [run::CHECKPOINTS, run::SAMPLES] {
+                    let _ = std::fs::remove_dir_all(run_dir.join(sub));
+                }
+                for f in [run::METRICS, run::CONFIG, run::GENERATOR] {
+                    let _ = std::fs::remove_file(run_dir.join(f));
+                }
+            }
+            Trainer::new(cfg, &run_dir)?
+        }
+        (None, Some(dir)) => Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?,
+        _ => bail!("pass either --config FILE or --resume RUN_DIR"),
+    };
+    let threads = gdrf_core::data::thread_count(trainer.cfg.threads);
+    tch::set_num_threads(threads as i32);
+
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        ctrlc::set_handler(move || {
+            if stop.swap(true, Ordering::SeqCst) {
+                eprintln!("\nsecond interrupt: exiting now, without a checkpoint of the step in progress");
+                std::process::exit(130);
+            }
+            eprintln!("\ninterrupt: finishing the current step, then writing a checkpoint (Ctrl-C again to exit at once)");
+        })
+        .context("installing the Ctrl-C/SIGTERM handler")?;
+    }
+
+    let gen_bar = ProgressBar::new_spinner();
+    let prepared = trainer.prepare_data(&|| gen_bar.inc(1))?;
+    gen_bar.finish_and_clear();
+    if prepared == gdrf_core::data::Prepared::Generated {
+        println!("generated the procedural dataset in {}", trainer.cfg.data.path.display());
+    }
+    let cfg = trainer.cfg.clone();
+    let stage = cfg.stage(trainer.progress.step);
+    let (g_params, d_all, d_used) = trainer.parameter_counts(stage.resolution);
+    let n_images = trainer.dataset(stage.resolution)?.len();
+    let from = trainer.progress.step;
+    println!(
+        "{} run {} at step {from}/{} on {:?} with {threads} threads",
+        if from == 0 { "starting" } else { "resuming" },
+        trainer.run_dir.display(),
+        cfg.schedule.total_steps,
+        trainer.device
+    );
+    println!(
+        "generator {g_params} parameters, discriminator {d_all} ({d_used} used at {r}²); {n_images} training images from {}",
+        cfg.data.path.display(),
+        r = stage.resolution
+    );
+
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.schedule.total_steps as u64) };
+    bar.set_style(
+        ProgressStyle::with_template("{prefix} [{bar:25}] {pos}/{len} {msg} | {elapsed} elapsed, eta {eta}")
+            .expect("static template")
+            .progress_chars("=> "),
+    );
+    bar.set_position(from as u64);
+    let limits = RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) };
+    let mut rate = None::<f64>;
+    let stopped = trainer.run(limits, &stop, |r, p| {
+        let ips = r.batch_size as f64 / r.seconds.max(1e-9);
+        let ips = *rate.insert(rate.map_or(ips, |old| 0.9 * old + 0.1 * ips));
+        let term = |k: &str| r.g_terms.iter().chain(&r.d_terms).find(|t| t.0 == k).map_or(f64::NAN, |t| t.1);
+        let msg = format!(
+            "{}² α {:.2} | {ips:.1} img/s | D {:.3} (real {:.3} fake {:.3}) | G adv {:.3} pose {:.3} reg {:.3}{}",
+            r.resolution,
+            r.alpha,
+            r.d_total,
+            term("d_real"),
+            term("d_fake"),
+            term("g_adv"),
+            term("g_pose"),
+            term("reg_normal"),
+            if p.skipped_steps > 0 { format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks) } else { String::new() }
+        );
+        bar.set_prefix(format!("stage {}", r.stage));
+        bar.set_position(p.step as u64);
+        if let Some(to) = r.rolled_back_to {
+            bar.println(format!("step {}: non-finite steps in a row; rolled back to step {to} with lr × {}", r.step, p.lr_scale));
+        }
+        if a.quiet && r.step % cfg.schedule.log_interval == 0 {
+            println!("step {} {msg}", r.step);
+        }
+        bar.set_message(msg);
+    })?;
+    bar.finish_and_clear();
+    let p = &trainer.progress;
+    let (latest, _) = run::latest_checkpoint(&trainer.run_dir)?;
+    let dir = trainer.run_dir.display();
+    match stopped {
+        Stopped::Finished => println!("finished: {} steps", p.step),
+        Stopped::Limit => println!("stopped at step {} (session limit); continue with `gdrf-train --resume {dir}`", p.step),
+        Stopped::Interrupted => println!("interrupted at step {}; checkpoint written; continue with `gdrf-train --resume {dir}`", p.step),
+    }
+    println!(
+        "checkpoint step {latest} in {dir}/{}/, EMA generator {dir}/{}, metrics {dir}/{} ({} steps skipped, {} rollbacks, {:.0} s training in all)",
+        run::CHECKPOINTS,
+        run::GENERATOR,
+        run::METRICS,
+        p.skipped_steps,
+        p.rollbacks,
+        p.train_seconds
+    );
+    if cfg.schedule.sample_interval > 0 {
+        let shown: Vec<String> = samples::latest_previews(&trainer.run_dir).iter().map(|p| p.display().to_string()).collect();
+        println!("previews: {}", shown.join(", "));
+    }
+    if stopped == Stopped::Interrupted {
+        std::process::exit(130);
+    }
+    Ok(())
+}

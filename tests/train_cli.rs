@@ -1,0 +1,123 @@
+//! gdrf-train from the command line: config errors name the key, SIGTERM (what Ctrl-C
+//! and schedulers send) writes a checkpoint of the last finished step and `--resume`
+//! continues from it, an existing run is never overwritten silently, and `plot` draws.
+mod common;
+
+use common::TempDir;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+}
+
+fn write_config(dir: &Path, total_steps: i64) -> PathBuf {
+    let text = common::tiny_training_toml(
+        "seed = 1\nthreads = 1",
+        &format!("total_steps = {total_steps}\nlog_interval = 1\ncheckpoint_interval = 1000\nsample_interval = 0"),
+        r#"
+[[stages]]
+from_step = 0
+resolution = 8
+num_steps = 4
+batch_size = 2
+
+[data]
+path = "data"
+
+[data.synth]
+count = 8
+resolution = 16
+supersample = 1
+shadows = false
+"#,
+    );
+    let path = dir.join("tiny.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn metrics_lines(run: &Path) -> usize {
+    std::fs::read_to_string(run.join("metrics.jsonl")).map(|s| s.lines().count()).unwrap_or(0)
+}
+
+fn checkpoints(run: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(run.join("checkpoints"))
+        .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+#[test]
+fn config_errors_name_the_key_and_the_expectation() {
+    let dir = TempDir::new("cli-config");
+    let good = std::fs::read_to_string(write_config(&dir.0, 10)).unwrap();
+    for (edit, key, expected) in [
+        (good.replace("log_interval = 1", "log_intervall = 1"), "log_intervall", "expected one of"),
+        (good.replace("batch_size = 2", "batch_size = \"two\""), "batch_size", "expected i64"),
+        (good.replace("resolution = 8\n", "resolution = 12\n"), "stages[0].resolution", "power of two"),
+        (format!("{good}\n[optim]\ngrad_clip = -1.0\n"), "optim.grad_clip", "positive"),
+    ] {
+        let path = dir.path("bad.toml");
+        std::fs::write(&path, edit).unwrap();
+        let out = bin().arg("--config").arg(&path).arg("--run-dir").arg(dir.path("run")).output().unwrap();
+        assert_eq!(out.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(key) && err.contains(expected) && err.contains("bad.toml"), "{key}: {err}");
+    }
+    let out = bin().arg("--print-config").arg(dir.path("tiny.toml")).output().unwrap();
+    assert!(out.status.success());
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(printed.contains("grad_clip = 0.3") && printed.contains("[[stages]]"), "{printed}");
+}
+
+#[test]
+fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
+    let dir = TempDir::new("cli-sigterm");
+    let config = write_config(&dir.0, 100_000);
+    let run = dir.path("run");
+    let child = bin()
+        .arg("--config")
+        .arg(&config)
+        .arg("--run-dir")
+        .arg(&run)
+        .arg("--quiet")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    while metrics_lines(&run) < 3 {
+        assert!(start.elapsed() < Duration::from_secs(120), "no training progress within 2 minutes");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let status = Command::new("kill").arg("-TERM").arg(child.id().to_string()).status().unwrap();
+    assert!(status.success());
+    let out = child.wait_with_output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(130), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("interrupted at step"), "{stdout}");
+    // The checkpoint is of the last finished step: one past the last logged step.
+    let logged = metrics_lines(&run);
+    let last = checkpoints(&run).pop().unwrap();
+    assert_eq!(last, format!("step-{logged:08}.safetensors"));
+
+    let out = bin().arg("--resume").arg(&run).args(["--steps", "2", "--quiet"]).output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains(&format!("resuming run {} at step {logged}/", run.display())), "{stdout}");
+    assert_eq!(metrics_lines(&run), logged + 2);
+    assert_eq!(checkpoints(&run).pop().unwrap(), format!("step-{:08}.safetensors", logged + 2));
+
+    // A new run in the same folder is refused without --force.
+    let out = bin().arg("--config").arg(&config).arg("--run-dir").arg(&run).arg("--steps").arg("1").output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--resume"));
+
+    let out = bin().arg("plot").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let img = image::open(run.join("losses.png")).unwrap();
+    assert_eq!((img.width(), img.height()), (4 * 360, 2 * 240));
+}

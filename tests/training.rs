@@ -1,0 +1,280 @@
+//! The training loop on a tiny model (seconds on a CPU): checkpoints and exports, exact
+//! resume, the non-finite guard (skip, then rollback), fade-in, stage switches and EMA at
+//! their configured steps, refusal of non-finite checkpoints, and the two-pass patch step
+//! giving the single-pass gradient.
+mod common;
+
+use common::TempDir;
+use gdrf_core::checkpoint::load_generator;
+use gdrf_core::train::{run, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use tch::{nn, Device, Kind, Tensor};
+
+/// A tiny model on 16 procedural chairs at 16², rendered at 8² then 16².
+fn tiny_config(dir: &Path, extra: &str) -> TrainConfig {
+    let rest = format!(
+        r#"
+[samples]
+count = 2
+swap = 2
+yaws = [0.0, 1.0]
+
+[[stages]]
+from_step = 0
+resolution = 8
+num_steps = 4
+batch_size = 2
+
+[[stages]]
+from_step = 3
+resolution = 16
+num_steps = 4
+batch_size = 2
+g_lr = 3e-4
+
+[data]
+path = "{data}"
+
+[data.synth]
+count = 16
+resolution = 16
+supersample = 1
+shadows = false
+"#,
+        data = dir.join("data").display()
+    );
+    let schedule = "total_steps = 100\nfade_steps = 2\nlog_interval = 1\ncheckpoint_interval = 2\nkeep_checkpoints = 2\nsample_interval = 4";
+    let text = common::tiny_training_toml(&format!("seed = 5\n{extra}"), schedule, &rest);
+    TrainConfig::from_toml(&text, Path::new("")).unwrap()
+}
+
+fn never() -> AtomicBool {
+    AtomicBool::new(false)
+}
+
+fn run_steps(t: &mut Trainer, n: i64) -> Vec<StepReport> {
+    let mut reports = Vec::new();
+    let stopped = t.run(RunLimits { steps: Some(n), seconds: None }, &never(), |r, _| reports.push(r.clone())).unwrap();
+    assert_eq!(stopped, Stopped::Limit);
+    reports
+}
+
+fn params(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
+    let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+fn same_params(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.0 == y.0 && x.1.equal(&y.1))
+}
+
+#[test]
+fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
+    let dir = TempDir::new("train-few");
+    let cfg = tiny_config(&dir.0, "");
+    let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    let reports = run_steps(&mut t, 5);
+    assert_eq!(reports.len(), 5);
+    assert_eq!(t.progress.step, 5);
+    let run_dir = dir.path("run");
+    // Checkpoints at 2 and 4 (interval 2) and the final one at 5; only the newest 2 kept.
+    let ckpts: Vec<i64> = run::list_checkpoints(&run_dir).unwrap().iter().map(|c| c.0).collect();
+    assert_eq!(ckpts, [4, 5]);
+    assert_eq!(TrainConfig::load(&run_dir.join(run::CONFIG)).unwrap().stages, cfg.stages);
+    let metrics = run::read_metrics(&run_dir).unwrap();
+    assert_eq!(metrics.iter().map(|m| m["step"].as_i64().unwrap()).collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+    for key in ["d_real", "d_fake", "d_r1", "d_pose_fake", "d_pose_real"] {
+        assert!(metrics[0]["d"][key].as_f64().unwrap().is_finite(), "{key}");
+    }
+    for key in ["g_adv", "g_pose", "reg_correction", "reg_smoothness", "reg_rigidity", "reg_normal"] {
+        assert!(metrics[0]["g"][key].as_f64().unwrap().is_finite(), "{key}");
+    }
+    assert!(metrics[0]["grad_norm_g"].as_f64().unwrap() > 0.0);
+    // Previews at 0 and 4, plus the final ones at 5.
+    for tag in ["step-00000000", "step-00000004", "step-00000005"] {
+        for kind in ["samples", "swap", "template"] {
+            let p = run_dir.join(run::SAMPLES).join(format!("{tag}-{kind}.png"));
+            assert!(p.is_file(), "{}", p.display());
+        }
+    }
+    let swap = image::open(run_dir.join(run::SAMPLES).join("latest-swap.png")).unwrap();
+    assert_eq!((swap.width(), swap.height()), (32, 32)); // 2 × 2 at the 16² stage
+    // The export and the training checkpoint both load as the EMA generator.
+    let exported = load_generator(&run_dir.join(run::GENERATOR), Device::Cpu, Kind::Float).unwrap();
+    let from_ckpt = load_generator(&run::latest_checkpoint(&run_dir).unwrap().1, Device::Cpu, Kind::Float).unwrap();
+    assert!(same_params(&params(&exported.vs), &params(&t.evs)));
+    assert!(same_params(&params(&from_ckpt.vs), &params(&t.evs)));
+    assert!(!same_params(&params(&t.evs), &params(&t.gvs)), "the EMA differs from the live weights");
+}
+
+#[test]
+fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
+    let dir = TempDir::new("train-resume");
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.schedule.checkpoint_interval = 100;
+    let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
+    a.prepare_data(&|| {}).unwrap();
+    let full = run_steps(&mut a, 6);
+
+    let mut b = Trainer::new(cfg, &dir.path("b")).unwrap();
+    run_steps(&mut b, 4); // stops with a checkpoint after step index 3 (inside stage 2)
+    drop(b);
+    let mut b = Trainer::resume(&dir.path("b"), None).unwrap();
+    assert_eq!(b.progress.step, 4);
+    let rest = run_steps(&mut b, 2);
+    for (x, y) in full[4..].iter().zip(&rest) {
+        assert_eq!(x.step, y.step);
+        assert_eq!(x.d_total.to_bits(), y.d_total.to_bits(), "step {}: D {} vs {}", x.step, x.d_total, y.d_total);
+        assert_eq!(x.g_total.to_bits(), y.g_total.to_bits(), "step {}: G {} vs {}", x.step, x.g_total, y.g_total);
+        assert_eq!(x.g_terms, y.g_terms);
+        assert_eq!(x.grad_norm_g.to_bits(), y.grad_norm_g.to_bits());
+    }
+    assert!(same_params(&params(&a.gvs), &params(&b.gvs)));
+    assert!(same_params(&params(&a.evs), &params(&b.evs)));
+    assert!(same_params(&params(&a.dvs), &params(&b.dvs)));
+    // The resumed run's metrics hold each step once.
+    let steps: Vec<i64> = run::read_metrics(&dir.path("b")).unwrap().iter().map(|m| m["step"].as_i64().unwrap()).collect();
+    assert_eq!(steps, [0, 1, 2, 3, 4, 5]);
+}
+
+#[test]
+fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
+    let dir = TempDir::new("train-guard");
+    let cfg = tiny_config(&dir.0, "[debug]\ninject_nonfinite_steps = [1, 6, 7, 8]\n\n[guard]\nrollback_after = 3");
+    let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    run_steps(&mut t, 1);
+    let (g_before, d_before) = (params(&t.gvs), params(&t.dvs));
+    let r = run_steps(&mut t, 1).remove(0);
+    assert!(r.g_skipped && !r.d_skipped && r.g_total.is_nan());
+    assert!(same_params(&g_before, &params(&t.gvs)), "a skipped step leaves G untouched");
+    assert!(!same_params(&d_before, &params(&t.dvs)), "D still takes its finite step");
+    assert_eq!((t.progress.skipped_steps, t.progress.consecutive_bad), (1, 1));
+    // Steps 2–5 are clean (checkpoints after 2, 4 and 6 steps), then 6, 7, 8 fail.
+    let reports = run_steps(&mut t, 7);
+    let rolled: Vec<_> = reports.iter().filter_map(|r| r.rolled_back_to.map(|to| (r.step, to))).collect();
+    assert_eq!(rolled, [(8, 8)], "the third bad step in a row (8) goes back to the newest checkpoint (after 8 steps)");
+    assert_eq!(t.progress.rollbacks, 1);
+    assert_eq!(t.progress.lr_scale, 0.5);
+    assert_eq!(t.progress.skipped_steps, 4);
+    let after = reports.last().unwrap();
+    assert!(!after.g_skipped, "the replay runs clean");
+    assert_eq!(after.lr_g, 0.5 * 3e-4);
+    let events: Vec<_> = run::read_metrics(&dir.path("run")).unwrap().into_iter().filter(|m| m["event"] == "rollback").collect();
+    assert_eq!(events.len(), 1);
+    assert_eq!(events[0]["lr_scale"].as_f64(), Some(0.5));
+}
+
+#[test]
+fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
+    let dir = TempDir::new("train-stages");
+    let cfg = tiny_config(&dir.0, "");
+    let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    let mut seen = Vec::new();
+    for _ in 0..6 {
+        let decay = t.ema.next_decay();
+        let shadow = params(&t.evs);
+        let r = t.step().unwrap();
+        // shadow ← shadow − (1 − d)(shadow − param), with the warm-up decay (1 + n)/(10 + n).
+        let live = params(&t.gvs);
+        for ((name, s0), ((_, s1), (_, p))) in shadow.iter().zip(params(&t.evs).iter().zip(&live)) {
+            let want = s0 - (s0 - p) * (1.0 - decay);
+            assert!(s1.allclose(&want, 1e-5, 1e-7, false), "EMA of {name} at step {}", r.step);
+        }
+        assert_eq!(decay, (2.0 + r.step as f64) / (11.0 + r.step as f64));
+        seen.push((r.step, r.stage, r.resolution, r.alpha, r.lr_g));
+    }
+    assert_eq!(t.ema.updates, 6);
+    assert_eq!(
+        seen,
+        [
+            (0, 0, 8, 1.0, 2e-5),
+            (1, 0, 8, 1.0, 2e-5),
+            (2, 0, 8, 1.0, 2e-5),
+            (3, 1, 16, 0.0, 3e-4),
+            (4, 1, 16, 0.5, 3e-4),
+            (5, 1, 16, 1.0, 3e-4),
+        ]
+    );
+}
+
+#[test]
+fn a_non_finite_state_is_never_checkpointed() {
+    let dir = TempDir::new("train-nan-ckpt");
+    let mut t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    run_steps(&mut t, 2);
+    let before = run::list_checkpoints(&dir.path("run")).unwrap();
+    let _ = tch::no_grad(|| t.gvs.variables()["template.sigma_head.bias"].shallow_clone().fill_(f64::NAN));
+    t.progress.step += 1;
+    let e = t.save_checkpoint().unwrap_err().to_string();
+    assert!(e.contains("generator.template.sigma_head.bias") && e.contains("NaN"), "{e}");
+    assert_eq!(run::list_checkpoints(&dir.path("run")).unwrap(), before, "nothing was written");
+}
+
+/// The two-pass patch step (no-grad render, D's gradient w.r.t. the image, each band
+/// re-rendered with gradients at the same depths) gives the single-pass gradient.
+#[test]
+fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
+    let dir = TempDir::new("train-patches");
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.stages.truncate(1);
+    cfg.stages[0].resolution = 16;
+    cfg.stages[0].batch_size = 4;
+    cfg.stages[0].batch_split = 2;
+    let mut single = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
+    single.prepare_data(&|| {}).unwrap();
+    cfg.stages[0].regions = 4;
+    let mut patched = Trainer::new(cfg, &dir.path("b")).unwrap();
+    let la = single.generator_gradients_now().unwrap();
+    let lb = patched.generator_gradients_now().unwrap();
+    for ((na, va), (nb, vb)) in la.iter().zip(&lb) {
+        assert_eq!(na, nb);
+        assert!((va - vb).abs() <= 1e-5 * (1.0 + va.abs()), "{na}: {va} vs {vb}");
+    }
+    let (ga, gb) = (single.gvs.variables(), patched.gvs.variables());
+    let mut checked = 0;
+    for (name, a) in &ga {
+        let (a, b) = (a.grad(), gb[name].grad());
+        assert!(a.defined() && b.defined(), "{name} has a gradient in both");
+        // Element-wise: |a − b| ≤ atol + rtol·|b|.
+        let scale = f64::try_from(a.abs().max()).unwrap();
+        let ok = a.allclose(&b, 1e-3, 1e-6 * scale.max(1e-12), false);
+        assert!(ok, "{name}: max |Δ| {}", f64::try_from((&a - &b).abs().max()).unwrap());
+        checked += 1;
+    }
+    assert!(checked > 20);
+    assert!(patched.dvs.trainable_variables().iter().all(|p| !p.grad().defined()), "D gets no gradient from the G step");
+}
+
+#[test]
+fn every_shipped_config_loads_and_validates() {
+    let dir = common::repo_root().join("configs");
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            let cfg = TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            assert!(cfg.schedule.total_steps > cfg.stages.last().unwrap().from_step, "{}", path.display());
+            names.push(path.file_stem().unwrap().to_string_lossy().into_owned());
+        }
+    }
+    names.sort();
+    assert_eq!(names, ["carla", "cars", "chairs", "chairs-tiny"]);
+}
+
+#[test]
+fn bfloat16_training_steps_stay_finite() {
+    let dir = TempDir::new("train-bf16");
+    let mut t = Trainer::new(tiny_config(&dir.0, "precision = \"bfloat16\""), &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    for _ in 0..2 {
+        let r = t.step().unwrap();
+        assert!(!r.g_skipped && !r.d_skipped && r.g_total.is_finite() && r.d_total.is_finite(), "{r:?}");
+    }
+    assert!(t.gvs.variables().values().all(|v| v.kind() == Kind::Float), "master weights stay float32");
+}
