@@ -278,3 +278,24 @@ fn bfloat16_training_steps_stay_finite() {
     }
     assert!(t.gvs.variables().values().all(|v| v.kind() == Kind::Float), "master weights stay float32");
 }
+
+#[test]
+fn a_run_continues_under_a_longer_schedule_but_not_with_other_networks() {
+    let dir = TempDir::new("train-extend");
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.schedule.total_steps = 3;
+    let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
+    let mut longer = cfg.clone();
+    longer.schedule.total_steps = 5;
+    let mut t = Trainer::resume_with(&dir.path("run"), longer).unwrap();
+    assert_eq!(t.progress.step, 3);
+    assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
+    assert_eq!(t.progress.step, 5);
+    assert_eq!(TrainConfig::load(&dir.path("run").join(run::CONFIG)).unwrap().schedule.total_steps, 5);
+    let mut wider = cfg;
+    wider.generator.hidden_dim = 16;
+    let e = Trainer::resume_with(&dir.path("run"), wider).err().unwrap().to_string();
+    assert!(e.contains("[generator]"), "{e}");
+}

@@ -10,22 +10,24 @@ use std::sync::Arc;
 
 #[derive(Args)]
 pub struct TrainArgs {
-    /// Start a training run from this config (TOML; see configs/).
-    #[arg(long, value_name = "TOML", conflicts_with_all = ["resume", "print_config"])]
+    /// Start a training run from this config (TOML; see configs/). With --resume: continue
+    /// that run under this config instead of its own (a longer or changed schedule; the
+    /// networks and camera must match).
+    #[arg(long, value_name = "TOML", conflicts_with = "print_config")]
     config: Option<PathBuf>,
     /// Continue the run in RUN_DIR from its newest checkpoint, exactly where it stopped
-    /// (the config saved in the checkpoint is used).
+    /// (with the config saved in the checkpoint, unless --config is given).
     #[arg(long, value_name = "RUN_DIR", conflicts_with = "print_config")]
     resume: Option<PathBuf>,
     /// Print the resolved config (every default filled in) and exit.
     #[arg(long, value_name = "TOML")]
     print_config: Option<PathBuf>,
     /// Run directory of a new run (default: runs/<config file name>).
-    #[arg(long, value_name = "DIR", requires = "config")]
+    #[arg(long, value_name = "DIR", requires = "config", conflicts_with = "resume")]
     run_dir: Option<PathBuf>,
     /// Start over in a run directory that already holds a run (its checkpoints, metrics
     /// and samples are removed first).
-    #[arg(long, requires = "config")]
+    #[arg(long, requires = "config", conflicts_with = "resume")]
     force: bool,
     /// Stop this session after N steps (with a checkpoint); `--resume` continues.
     #[arg(long, value_name = "N")]
@@ -61,19 +63,26 @@ pub fn train(a: TrainArgs) -> Result<()> {
         print!("{}", cfg.to_toml()?);
         return Ok(());
     }
-    if a.steps.is_some_and(|n| n < 1) || a.minutes.is_some_and(|m| !(m > 0.0)) {
+    if a.steps.is_some_and(|n| n < 1) || a.minutes.is_some_and(|m| m.is_nan() || m <= 0.0) {
         bail!("--steps and --minutes must be positive");
     }
+    let load = |path: &Path| -> Result<TrainConfig> {
+        let mut cfg = TrainConfig::load(path)?;
+        if let Some(d) = &a.device {
+            cfg.device = d.clone();
+        }
+        if let Some(t) = a.threads {
+            cfg.threads = t;
+        }
+        cfg.validate()?;
+        Ok(cfg)
+    };
     let mut trainer = match (&a.config, &a.resume) {
+        (Some(path), Some(dir)) => {
+            Trainer::resume_with(dir, load(path)?).with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?
+        }
         (Some(path), None) => {
-            let mut cfg = TrainConfig::load(path)?;
-            if let Some(d) = &a.device {
-                cfg.device = d.clone();
-            }
-            if let Some(t) = a.threads {
-                cfg.threads = t;
-            }
-            cfg.validate()?;
+            let cfg = load(path)?;
             let run_dir = a.run_dir.clone().unwrap_or_else(|| default_run_dir(path));
             if !run::list_checkpoints(&run_dir)?.is_empty() {
                 if !a.force {
@@ -92,8 +101,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
             }
             Trainer::new(cfg, &run_dir)?
         }
-        (None, Some(dir)) => Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?,
-        _ => bail!("pass either --config FILE or --resume RUN_DIR"),
+        (None, Some(dir)) => {
+            let mut t = Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
+            if let Some(n) = a.threads {
+                t.cfg.threads = n;
+            }
+            t
+        }
+        (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
     };
     let threads = gdrf_core::data::thread_count(trainer.cfg.threads);
     tch::set_num_threads(threads as i32);

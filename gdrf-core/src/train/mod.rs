@@ -211,6 +211,32 @@ impl Trainer {
         Ok(t)
     }
 
+    /// Continues the run in `run_dir` under a changed config (a longer schedule, other
+    /// stages, learning rates or loss weights). The networks and the camera must be the
+    /// ones the run was trained with; a difference is an error naming the table. The new
+    /// config is written to RUN_DIR/config.toml and into the following checkpoints.
+    pub fn resume_with(run_dir: &Path, cfg: TrainConfig) -> Result<Self> {
+        let mut t = Self::resume(run_dir, Some(&cfg.device))?;
+        for (table, same) in [
+            ("generator", t.cfg.generator == cfg.generator),
+            ("discriminator", t.cfg.discriminator == cfg.discriminator),
+            ("camera", t.cfg.camera == cfg.camera),
+        ] {
+            if !same {
+                return Err(Error::Config(format!(
+                    "[{table}] differs from the run's ({}); a run continues only with the networks and camera it was trained with",
+                    run_dir.display()
+                )));
+            }
+        }
+        cfg.validate()?;
+        t.cfg = cfg;
+        t.datasets.clear();
+        t.permutation = None;
+        checkpoint::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_toml()?.as_bytes())?;
+        Ok(t)
+    }
+
     fn from_checkpoint(path: &Path, run_dir: &Path, device: Option<&str>) -> Result<Self> {
         let ckpt = checkpoint::load(path)?;
         let bad = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
@@ -475,7 +501,7 @@ impl Trainer {
             let lat = gen.latents(z, z, None);
             let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
             let mut losses = generator_pass(&renderer, &self.disc, &fake, Some(reg_rays), at, cfg)?;
-            losses.total = losses.total * fault;
+            losses.total = losses.total.g_mul_scalar(fault);
             (&losses.total / split).backward();
             return Ok(losses);
         }
@@ -489,7 +515,7 @@ impl Trainer {
         let img = img.detach().set_requires_grad(true);
         let d = self.disc.forward(&img, at.alpha)?;
         let mut adv = generator_adversarial(&d, &target, Some(z), at, cfg)?;
-        adv.total = adv.total * fault;
+        adv.total = adv.total.g_mul_scalar(fault);
         let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
         // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.
         let b = g_img.size()[0];
@@ -662,6 +688,7 @@ impl Trainer {
         use std::sync::atomic::Ordering;
         std::fs::create_dir_all(&self.run_dir).map_err(|source| Error::Io { path: self.run_dir.clone(), source })?;
         if run::list_checkpoints(&self.run_dir)?.is_empty() {
+            run::truncate_metrics(&self.run_dir, self.progress.step)?;
             checkpoint::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_toml()?.as_bytes())?;
             self.save_checkpoint()?;
             if self.cfg.schedule.sample_interval > 0 {

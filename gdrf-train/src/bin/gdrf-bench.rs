@@ -61,6 +61,10 @@ enum Bench {
         /// Batch size (default: the stage's).
         #[arg(long)]
         batch: Option<i64>,
+        /// Chunks the generator's batch is rendered in (default: the stage's; the
+        /// release's per-GPU step is 4 images in 4 chunks).
+        #[arg(long)]
+        batch_split: Option<i64>,
         /// Index of the config's stage to run (its resolution, samples, batch, split).
         #[arg(long, default_value_t = 0)]
         stage: usize,
@@ -206,7 +210,7 @@ impl Drop for TempDir {
 /// The config of `gdrf-bench step`: stage `stage` of the file as the only stage (batch
 /// overridden), on the CPU, never sampling or rolling back, training on a small
 /// procedural dataset under `tmp`. Also returns notes on what the comparison leaves out.
-fn step_config(path: &Path, stage: usize, batch: Option<i64>, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
+fn step_config(path: &Path, stage: usize, batch: Option<i64>, split: Option<i64>, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
     let mut cfg = TrainConfig::load(path)?;
     let n = cfg.stages.len();
     if stage >= n {
@@ -220,6 +224,14 @@ fn step_config(path: &Path, stage: usize, batch: Option<i64>, tmp: &Path) -> Res
             bail!("--batch must be at least 1");
         }
         st.batch_size = b;
+    }
+    if let Some(k) = split {
+        if k < 1 || st.batch_size % k != 0 {
+            bail!("--batch-split {k} must divide the batch {}", st.batch_size);
+        }
+        st.batch_split = k;
+    } else if batch.is_some() {
+        let b = st.batch_size;
         if b % st.batch_split != 0 {
             notes.push(format!("batch_split {} does not divide --batch {b}: using batch_split 1", st.batch_split));
             st.batch_split = 1;
@@ -372,6 +384,7 @@ fn step_reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result
 fn bench_step(
     config: &Path,
     batch: Option<i64>,
+    batch_split: Option<i64>,
     stage: usize,
     steps: usize,
     warmup: usize,
@@ -382,7 +395,7 @@ fn bench_step(
         bail!("--steps must be at least 1");
     }
     let tmp = TempDir::new("gdrf-bench-step")?;
-    let (cfg, notes) = step_config(config, stage, batch, &tmp.0)?;
+    let (cfg, notes) = step_config(config, stage, batch, batch_split, &tmp.0)?;
     for n in &notes {
         eprintln!("note: {n}");
     }
@@ -483,8 +496,8 @@ fn bench_step(
 
 fn run() -> Result<()> {
     match Cli::parse().command {
-        Bench::Step { config, batch, stage, steps, warmup, no_reference, out_dir } => {
-            bench_step(&config, batch, stage, steps, warmup, no_reference, &out_dir)?;
+        Bench::Step { config, batch, batch_split, stage, steps, warmup, no_reference, out_dir } => {
+            bench_step(&config, batch, batch_split, stage, steps, warmup, no_reference, &out_dir)?;
         }
         Bench::Losses { batch, batch_split, resolution, steps, repeats, no_reference, out_dir } => {
             if batch_split < 1 || batch % batch_split != 0 {
