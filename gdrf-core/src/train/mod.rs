@@ -45,6 +45,8 @@ pub struct Progress {
     pub skipped_steps: i64,
     pub consecutive_bad: i64,
     pub rollbacks: i64,
+    /// Step counts of both Adam optimisers and the EMA (filled in when a checkpoint is
+    /// written; the optimisers and the EMA own them while training).
     pub adam_g_t: i64,
     pub adam_d_t: i64,
     pub ema_updates: i64,
@@ -372,19 +374,26 @@ impl Trainer {
         Ok(report)
     }
 
-    fn renderer(&self, stage: &Stage) -> (crate::RenderConfig, crate::CameraConfig) {
-        (crate::RenderConfig { num_steps: stage.num_steps, ..self.cfg.render.clone() }, self.cfg.camera.clone())
-    }
-
-    /// The live generator's renderer at the configured precision.
-    fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig, cam: &'a crate::CameraConfig) -> Result<Renderer<'a>> {
-        let mut r = Renderer::new(&self.generator, cam, rc)?;
+    /// The live generator's renderer with sampling config `rc`, at the configured precision.
+    fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig) -> Result<Renderer<'a>> {
+        let mut r = Renderer::new(&self.generator, &self.cfg.camera, rc)?;
         r.field.compute_kind = self.cfg.precision.compute_kind();
         Ok(r)
     }
 
-    fn noise(&self, step: i64, jitter: Purpose, importance: Purpose, shape: [i64; 3]) -> Noise {
-        Noise { jitter: Some(self.rng(step, jitter).uniform(&shape)), importance: Some(self.rng(step, importance).uniform(&shape)) }
+    /// One player's fake batch of `stage` at `step`: codes `(B, latent)`, poses and
+    /// renderer noise, from the draws `[codes, poses, jitter, importance]`.
+    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 4]) -> (Tensor, Poses, Noise) {
+        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let [codes, poses, jitter, importance] = purposes;
+        let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
+        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, poses));
+        let shape = [b, res * res, n];
+        let noise = Noise {
+            jitter: Some(self.rng(step, jitter).uniform(&shape)),
+            importance: Some(self.rng(step, importance).uniform(&shape)),
+        };
+        (z, poses, noise)
     }
 
     fn discriminator_step(
@@ -395,30 +404,23 @@ impl Trainer {
         real_poses: Option<&Tensor>,
         lr: f64,
     ) -> Result<Update> {
-        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
-        let step = at.step;
-        let latent = self.cfg.generator.latent_dim as i64;
-        let z = self.rng(step, Purpose::DiscCodes).normal(&[b, latent]);
-        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, Purpose::DiscPoses));
-        let noise = self.noise(step, Purpose::DiscJitter, Purpose::DiscImportance, [b, res * res, n]);
-        let (rc, cam) = self.renderer(stage);
-        let renderer = self.live_renderer(&rc, &cam)?;
+        let purposes = [Purpose::DiscCodes, Purpose::DiscPoses, Purpose::DiscJitter, Purpose::DiscImportance];
+        let (z, poses, noise) = self.fake_draws(stage, at.step, purposes);
+        let rc = self.cfg.render_config(at.step);
+        let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
         let lat = tch::no_grad(|| self.generator.latents(&z, &z, None));
-        let fake = FakeBatch { latents: &lat, poses: &poses, z: Some(&z), resolution: res, regions: stage.regions, noise: &noise };
+        let fake = FakeBatch { latents: &lat, poses: &poses, z: Some(&z), resolution: stage.resolution, regions: stage.regions, noise: &noise };
         let losses = discriminator_pass(&renderer, &self.disc, real, real_poses, &fake, at, &self.cfg.loss)?;
+        // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
         losses.total.backward();
-        let update = self.apply(Net::D, &losses, lr);
-        zero_grads(&self.dvs);
-        Ok(update)
+        Ok(self.apply(Net::D, &losses, lr))
     }
 
     fn generator_step(&mut self, stage: &Stage, at: Schedule, lr: f64) -> Result<Update> {
         let losses = self.generator_gradients(stage, at)?;
-        let update = self.apply(Net::G, &losses, lr);
-        zero_grads(&self.gvs);
-        Ok(update)
+        Ok(self.apply(Net::G, &losses, lr))
     }
 
     /// Computes the generator's gradients of the step about to run and leaves them in
@@ -435,12 +437,10 @@ impl Trainer {
     /// Renders the generator's batch chunk by chunk and accumulates the gradient of the
     /// batch-mean loss into the generator's variables (D frozen throughout).
     fn generator_gradients(&mut self, stage: &Stage, at: Schedule) -> Result<Losses> {
-        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let (b, res) = (stage.batch_size, stage.resolution);
         let step = at.step;
-        let latent = self.cfg.generator.latent_dim as i64;
-        let z = self.rng(step, Purpose::GenCodes).normal(&[b, latent]);
-        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, Purpose::GenPoses));
-        let noise = self.noise(step, Purpose::GenJitter, Purpose::GenImportance, [b, res * res, n]);
+        let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
+        let (z, poses, noise) = self.fake_draws(stage, step, purposes);
         let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
         let reg_rays = Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
             .view([b, n_reg])
@@ -490,8 +490,8 @@ impl Trainer {
         split: f64,
         inject: bool,
     ) -> Result<Losses> {
-        let (rc, cam) = self.renderer(stage);
-        let renderer = self.live_renderer(&rc, &cam)?;
+        let rc = self.cfg.render_config(at.step);
+        let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
         let cfg = &self.cfg.loss;
         let res = stage.resolution;
@@ -552,13 +552,8 @@ impl Trainer {
                 Net::G => {
                     self.adam_g.step(&self.gvs, lr);
                     self.ema.update(&self.evs, &self.gvs);
-                    self.progress.adam_g_t = self.adam_g.t;
-                    self.progress.ema_updates = self.ema.updates;
                 }
-                Net::D => {
-                    self.adam_d.step(&self.dvs, lr);
-                    self.progress.adam_d_t = self.adam_d.t;
-                }
+                Net::D => self.adam_d.step(&self.dvs, lr),
             }
         }
         Update { total, terms: losses.values(), norm, skipped: !ok }
@@ -626,7 +621,9 @@ impl Trainer {
         std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
         let path = dir.join(run::checkpoint_name(self.progress.step));
         let mut header = self.header("training_state");
-        let th = TrainingHeader { progress: self.progress.clone(), stage: self.cfg.stage_index(self.progress.step), config: self.cfg.clone() };
+        // The optimisers and the EMA own their step counts; the header carries them.
+        let progress = Progress { adam_g_t: self.adam_g.t, adam_d_t: self.adam_d.t, ema_updates: self.ema.updates, ..self.progress.clone() };
+        let th = TrainingHeader { progress, stage: self.cfg.stage_index(self.progress.step), config: self.cfg.clone() };
         header.training = Some(serde_json::to_value(&th).map_err(|e| Error::Invalid(e.to_string()))?);
         checkpoint::save(&path, &self.state_tensors(), &header)?;
         self.export_generator(&self.run_dir.join(run::GENERATOR))?;

@@ -118,6 +118,40 @@ fn python() -> PathBuf {
     std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| root().join(".venv/bin/python"))
 }
 
+/// Runs `scripts/reference/<script>` with the project's Python and reads the JSON it
+/// prints (its progress messages go to our stderr).
+fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value> {
+    eprintln!("running the PyTorch reference …");
+    let out = Command::new(python())
+        .arg(root().join("scripts/reference").join(script))
+        .args(args)
+        .stderr(std::process::Stdio::inherit())
+        .output()
+        .context("starting the PyTorch reference (run scripts/setup.sh)")?;
+    if !out.status.success() {
+        bail!("the PyTorch reference failed (its messages are above)");
+    }
+    serde_json::from_slice(&out.stdout).context("reading the reference's JSON")
+}
+
+/// Writes `OUT_DIR/<name>.json` atomically and its bar chart `<name>.png`.
+fn write_report(out_dir: &Path, name: &str, doc: &serde_json::Value) -> Result<()> {
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+    let json_path = out_dir.join(format!("{name}.json"));
+    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(doc)?.as_bytes())?;
+    let png = out_dir.join(format!("{name}.png"));
+    let status = Command::new(python())
+        .arg(root().join("scripts/plot_bench.py"))
+        .args([&json_path, &png])
+        .status()
+        .context("starting scripts/plot_bench.py")?;
+    if !status.success() {
+        bail!("plotting failed (is matplotlib installed? run scripts/setup.sh)");
+    }
+    println!("wrote {} and {}", json_path.display(), png.display());
+    Ok(())
+}
+
 #[allow(clippy::too_many_arguments)]
 fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> Result<serde_json::Value> {
     let threads = device::init_threads();
@@ -435,17 +469,7 @@ fn bench_step(
     let ref_args = step_reference_args(&cfg, warmup, steps)?;
     let mut runs = vec![bench_step_gdrf(cfg, &tmp.0.join("run"), warmup, steps)?];
     if !no_reference {
-        eprintln!("running the PyTorch reference …");
-        let out = Command::new(python())
-            .arg(root().join("scripts/reference/bench_step.py"))
-            .args(&ref_args)
-            .stderr(std::process::Stdio::inherit())
-            .output()
-            .context("starting the PyTorch reference (run scripts/setup.sh)")?;
-        if !out.status.success() {
-            bail!("the PyTorch reference failed (its messages are above)");
-        }
-        runs.push(serde_json::from_slice(&out.stdout).context("reading the reference's JSON")?);
+        runs.push(run_reference("bench_step.py", &ref_args)?);
     }
     let num = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap_or(f64::NAN);
     let med = |r: &serde_json::Value| r["median_s"]["step"].as_f64().unwrap_or(f64::NAN);
@@ -470,9 +494,6 @@ fn bench_step(
             num(y, "peak_rss_mb") / num(x, "peak_rss_mb")
         );
     }
-    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
-    let name = format!("step-{stem}-stage{stage}-b{b}");
-    let json_path = out_dir.join(format!("{name}.json"));
     let doc = json!({
         "title": title,
         "machine": format!("{} CPU threads", runs[0]["threads"]),
@@ -480,18 +501,7 @@ fn bench_step(
         "phases": ["step"],
         "runs": runs,
     });
-    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
-    let png = out_dir.join(format!("{name}.png"));
-    let status = Command::new(python())
-        .arg(root().join("scripts/plot_bench.py"))
-        .args([&json_path, &png])
-        .status()
-        .context("starting scripts/plot_bench.py")?;
-    if !status.success() {
-        bail!("plotting failed (is matplotlib installed? run scripts/setup.sh)");
-    }
-    println!("wrote {} and {}", json_path.display(), png.display());
-    Ok(())
+    write_report(out_dir, &format!("step-{stem}-stage{stage}-b{b}"), &doc)
 }
 
 fn run() -> Result<()> {
@@ -513,18 +523,15 @@ fn run() -> Result<()> {
             bench_losses(batch_split, batch_split, 16, 8, 1)?;
             let mut runs = vec![bench_losses(batch, batch_split, resolution, steps, repeats)?];
             if !no_reference {
-                eprintln!("running the PyTorch reference …");
-                let out = Command::new(python())
-                    .arg(root().join("scripts/reference/bench_losses.py"))
-                    .args(["--batch", &batch.to_string(), "--batch-split", &batch_split.to_string()])
-                    .args(["--resolution", &resolution.to_string(), "--steps", &steps.to_string()])
-                    .args(["--repeats", &repeats.to_string()])
-                    .output()
-                    .context("starting the PyTorch reference (run scripts/setup.sh)")?;
-                if !out.status.success() {
-                    bail!("the PyTorch reference failed:\n{}", String::from_utf8_lossy(&out.stderr));
-                }
-                runs.push(serde_json::from_slice(&out.stdout).context("reading the reference's JSON")?);
+                let pairs = [
+                    ("--batch", batch),
+                    ("--batch-split", batch_split),
+                    ("--resolution", resolution),
+                    ("--steps", steps as i64),
+                    ("--repeats", repeats as i64),
+                ];
+                let args: Vec<String> = pairs.iter().flat_map(|(k, v)| [k.to_string(), v.to_string()]).collect();
+                runs.push(run_reference("bench_losses.py", &args)?);
             }
             println!("{title}");
             println!("{:<14}{:>14}{:>14}{:>14}{:>14}{:>12}", "", "G forward s", "G backward s", "D forward s", "D backward s", "peak MB");
@@ -545,20 +552,8 @@ fn run() -> Result<()> {
                     println!("{name}: gdrf {x:.2} s, reference {y:.2} s, reference/gdrf = {:.2}×", y / x);
                 }
             }
-            std::fs::create_dir_all(&out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
-            let json_path = out_dir.join("losses.json");
             let doc = json!({"title": title, "machine": format!("{} CPU threads", runs[0]["threads"]), "phases": phases, "runs": runs});
-            gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
-            let png = out_dir.join("losses.png");
-            let status = Command::new(python())
-                .arg(root().join("scripts/plot_bench.py"))
-                .args([&json_path, &png])
-                .status()
-                .context("starting scripts/plot_bench.py")?;
-            if !status.success() {
-                bail!("plotting failed (is matplotlib installed? run scripts/setup.sh)");
-            }
-            println!("wrote {} and {}", json_path.display(), png.display());
+            write_report(&out_dir, "losses", &doc)?;
         }
     }
     Ok(())
