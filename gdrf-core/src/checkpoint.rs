@@ -104,6 +104,13 @@ pub fn is_finite(t: &Tensor) -> bool {
 /// Serialises named tensors and the header to safetensors bytes. A tensor with a NaN or
 /// an infinity is an error naming it: such a checkpoint is never written.
 pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>> {
+    let json = serde_json::to_string(header).map_err(|e| Error::Invalid(e.to_string()))?;
+    tensors_to_bytes(tensors, HEADER_KEY, &json)
+}
+
+/// Serialises named tensors with one JSON metadata entry under `key` (other models'
+/// files: the evaluation's probe). Non-finite tensors are refused as in [`to_bytes`].
+pub fn tensors_to_bytes(tensors: &[(String, Tensor)], key: &str, json: &str) -> Result<Vec<u8>> {
     let mut data = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
         if !is_finite(t) {
@@ -120,8 +127,7 @@ pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>
         .map(|(n, d, s, b)| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
         .collect::<std::result::Result<Vec<_>, _>>()
         .map_err(|e| Error::Invalid(format!("tensor layout: {e}")))?;
-    let json = serde_json::to_string(header).map_err(|e| Error::Invalid(e.to_string()))?;
-    let meta = HashMap::from([(HEADER_KEY.to_string(), json)]);
+    let meta = HashMap::from([(key.to_string(), json.to_string())]);
     safetensors::serialize(views, Some(meta)).map_err(|e| Error::Invalid(format!("serialise: {e}")))
 }
 
@@ -140,6 +146,21 @@ pub struct Checkpoint {
 
 /// Reads and validates a checkpoint file (layout, header); tensors land on the CPU.
 pub fn load(path: &Path) -> Result<Checkpoint> {
+    let (json, tensors) = load_tensors_with(path, HEADER_KEY)?;
+    let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
+    let header: Header = serde_json::from_str(&json).map_err(|e| not(format!("bad header: {e}")))?;
+    if header.format_version > FORMAT_VERSION {
+        return Err(not(format!(
+            "format version {} is newer than this program's {FORMAT_VERSION}",
+            header.format_version
+        )));
+    }
+    Ok(Checkpoint { path: path.to_path_buf(), header, tensors })
+}
+
+/// Reads a safetensors file with a JSON metadata entry under `key`: the JSON and the
+/// CPU tensors by name (non-finite tensors refused).
+pub fn load_tensors_with(path: &Path, key: &str) -> Result<(String, BTreeMap<String, Tensor>)> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
     let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
     let st = SafeTensors::deserialize(&bytes).map_err(|e| {
@@ -155,15 +176,9 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
     let json = meta
         .metadata()
         .as_ref()
-        .and_then(|m| m.get(HEADER_KEY))
-        .ok_or_else(|| not(format!("a safetensors file without the '{HEADER_KEY}' header")))?;
-    let header: Header = serde_json::from_str(json).map_err(|e| not(format!("bad header: {e}")))?;
-    if header.format_version > FORMAT_VERSION {
-        return Err(not(format!(
-            "format version {} is newer than this program's {FORMAT_VERSION}",
-            header.format_version
-        )));
-    }
+        .and_then(|m| m.get(key))
+        .ok_or_else(|| not(format!("a safetensors file without the '{key}' header")))?
+        .clone();
     let mut tensors = BTreeMap::new();
     for (name, view) in st.tensors() {
         let kind = match view.dtype() {
@@ -181,7 +196,7 @@ pub fn load(path: &Path) -> Result<Checkpoint> {
         }
         tensors.insert(name, t);
     }
-    Ok(Checkpoint { path: path.to_path_buf(), header, tensors })
+    Ok((json, tensors))
 }
 
 impl Checkpoint {

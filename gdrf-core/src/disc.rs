@@ -19,11 +19,15 @@ pub struct DiscConfig {
     /// Channels of fromRGB[i] and of the input of layers[i], i = 0..8 (9 values; the
     /// last is the head's input). Layer i maps channels[i] → channels[i + 1].
     pub channels: Vec<i64>,
+    /// Group size of a minibatch standard-deviation channel appended before the head
+    /// (StyleGAN's remedy for mode collapse: D sees how much a group of images varies);
+    /// 0 = off, as in the release. Groups shrink to divide the batch.
+    pub minibatch_std_group: i64,
 }
 
 impl Default for DiscConfig {
     fn default() -> Self {
-        Self { channels: CHANNELS.to_vec() }
+        Self { channels: CHANNELS.to_vec(), minibatch_std_group: 0 }
     }
 }
 
@@ -36,8 +40,30 @@ impl DiscConfig {
                 CHANNELS.len()
             )));
         }
+        if self.minibatch_std_group < 0 {
+            return Err(Error::Config(format!(
+                "discriminator.minibatch_std_group is {}, expected 0 (off) or a group size ≥ 1",
+                self.minibatch_std_group
+            )));
+        }
         Ok(())
     }
+}
+
+/// Appends StyleGAN's minibatch standard-deviation channel: images are split into groups
+/// of `group` (shrunk to the largest divisor of the batch), the standard deviation of every
+/// feature over each group is averaged to one number per group and broadcast as an extra
+/// channel. `x: (B, C, H, W)` → `(B, C + 1, H, W)`.
+pub fn minibatch_std(x: &Tensor, group: i64) -> Tensor {
+    let s = x.size();
+    let (b, c, h, w) = (s[0], s[1], s[2], s[3]);
+    let g = (1..=group.min(b)).rev().find(|g| b % g == 0).unwrap_or(1);
+    let y = x.view([g, b / g, c, h, w]);
+    // Variance + ε before the square root: a group of identical images has a finite gradient.
+    let sd = ((&y - y.mean_dim(0, true, x.kind())).square().mean_dim(0, false, x.kind()) + 1e-8).sqrt();
+    let per_group = sd.mean_dim([1i64, 2, 3].as_slice(), false, x.kind()); // (B/g,)
+    let ch = per_group.view([1, b / g, 1, 1, 1]).expand([g, b / g, 1, h, w], false).reshape([b, 1, h, w]);
+    Tensor::cat(&[x.shallow_clone(), ch], 1)
 }
 
 /// A 2-D convolution with PyTorch's default initialisation (weight and bias
@@ -126,6 +152,7 @@ pub struct Discriminator {
     pub from_rgb: Vec<Conv>,
     pub layers: Vec<ResidualBlock>,
     pub head: Conv,
+    minibatch_std_group: i64,
 }
 
 impl Discriminator {
@@ -140,8 +167,9 @@ impl Discriminator {
         let c = &cfg.channels;
         let from_rgb = c.iter().enumerate().map(|(i, &c)| Conv::new(vs / "from_rgb" / i, 3, c, 1, 0)).collect();
         let layers = (0..8).map(|i| ResidualBlock::new(vs / "layers" / i, c[i], c[i + 1])).collect();
-        let head = Conv::new(vs / "head", c[8], 1 + LATENT_DIM + 2, 2, 0);
-        Ok(Self { from_rgb, layers, head })
+        let head_in = c[8] + (cfg.minibatch_std_group > 0) as i64;
+        let head = Conv::new(vs / "head", head_in, 1 + LATENT_DIM + 2, 2, 0);
+        Ok(Self { from_rgb, layers, head, minibatch_std_group: cfg.minibatch_std_group })
     }
 
     /// Index of the first block for a `size × size` input (512 → 0, …, 64 → 3, 2 → 8).
@@ -168,6 +196,9 @@ impl Discriminator {
                 x = x * alpha + skip * (1.0 - alpha);
             }
             x = layer.forward(&x);
+        }
+        if self.minibatch_std_group > 0 {
+            x = minibatch_std(&x, self.minibatch_std_group);
         }
         let out = self.head.forward(&x).flatten(1, -1);
         Ok(DiscOutput {
@@ -233,12 +264,36 @@ mod tests {
     #[test]
     fn narrow_widths_work_and_bad_ones_are_named() {
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64] };
+        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], minibatch_std_group: 0 };
         let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
         let o = d.forward(&Tensor::rand([3, 3, 32, 32], (Kind::Float, Device::Cpu)), 0.3).unwrap();
         assert_eq!(o.pose.size(), [3, 2]);
-        let e = Discriminator::with_config(&(&vs.root() / "x"), &DiscConfig { channels: vec![4; 8] }).unwrap_err().to_string();
+        let e = Discriminator::with_config(&(&vs.root() / "x"), &DiscConfig { channels: vec![4; 8], ..Default::default() }).unwrap_err().to_string();
         assert!(e.contains("discriminator.channels"), "{e}");
+    }
+
+    #[test]
+    fn minibatch_std_sees_the_spread_of_each_group() {
+        let opts = (Kind::Double, Device::Cpu);
+        // Two groups of two (group 2, batch 4): images 0 and 2 form one group, 1 and 3 the other.
+        let x = Tensor::cat(&[Tensor::zeros([1, 2, 2, 2], opts), Tensor::ones([1, 2, 2, 2], opts),
+            Tensor::full([1, 2, 2, 2], 2.0, opts), Tensor::ones([1, 2, 2, 2], opts)], 0);
+        let y = minibatch_std(&x, 2);
+        assert_eq!(y.size(), [4, 3, 2, 2]);
+        let ch: Vec<f64> = Vec::try_from(y.select(1, 2).mean_dim([1i64, 2].as_slice(), false, Kind::Double)).unwrap();
+        // Group {0, 2}: values 0 and 2 → population sd 1; group {1, 3}: identical → √1e-8.
+        for (got, want) in ch.iter().zip([1.0, 1e-4, 1.0, 1e-4]) {
+            assert!((got - want).abs() <= 1e-9 + 1e-6 * want, "{ch:?}");
+        }
+        // A batch of 3 with group 4 falls back to one group of 3; gradients stay finite for identical images.
+        let z = Tensor::ones([3, 2, 2, 2], opts).set_requires_grad(true);
+        minibatch_std(&z, 4).sum(Kind::Double).backward();
+        assert!(bool::try_from(z.grad().isfinite().all()).unwrap());
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], minibatch_std_group: 4 };
+        let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
+        assert_eq!(d.head.weight.size()[1], 65);
+        assert_eq!(d.forward(&Tensor::rand([6, 3, 32, 32], (Kind::Float, Device::Cpu)), 1.0).unwrap().logit.size(), [6, 1]);
     }
 
     #[test]

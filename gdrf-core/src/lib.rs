@@ -16,6 +16,7 @@ pub mod data;
 pub mod device;
 pub mod disc;
 pub mod error;
+pub mod eval;
 pub mod field;
 pub mod io;
 pub mod loss;

@@ -84,7 +84,7 @@ fn glyph(c: char) -> [u8; 7] {
     find(c).or_else(|| find(c.to_ascii_lowercase())).unwrap_or(BOX)
 }
 
-fn text_width(s: &str, scale: u32) -> i64 {
+pub(crate) fn text_width(s: &str, scale: u32) -> i64 {
     (s.chars().count() as i64 * 6 - 1).max(0) * scale as i64
 }
 
@@ -95,7 +95,7 @@ fn fit(s: &str, max_w: i64, scale: u32) -> String {
 }
 
 /// Fills a rectangle, clipped to the image (so callers never need bounds checks).
-fn fill(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8>) {
+pub(crate) fn fill(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8>) {
     let (iw, ih) = (img.width() as i64, img.height() as i64);
     for yy in y.max(0)..(y + h).min(ih) {
         for xx in x.max(0)..(x + w).min(iw) {
@@ -105,7 +105,7 @@ fn fill(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8>) {
 }
 
 /// Draws `s` with its top-left corner at (x, y).
-fn draw_text(img: &mut RgbImage, x: i64, y: i64, s: &str, c: Rgb<u8>, scale: u32) {
+pub(crate) fn draw_text(img: &mut RgbImage, x: i64, y: i64, s: &str, c: Rgb<u8>, scale: u32) {
     let sc = scale as i64;
     for (i, ch) in s.chars().enumerate() {
         let gx = x + i as i64 * 6 * sc;

@@ -28,6 +28,12 @@ pub enum Purpose {
     SampleCodes = 12,
     /// The truncation centre's codes.
     Truncation = 13,
+    /// Evaluation: codes, poses, subsets and the probe's batches.
+    EvalCodes = 14,
+    EvalPoses = 15,
+    EvalSubsets = 16,
+    ProbeBatches = 17,
+    ProbeInit = 18,
 }
 
 /// A source of uniform and normal tensors.

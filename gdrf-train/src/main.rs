@@ -1,6 +1,7 @@
 //! gdrf-train: train GDRF generators (`--config`, `--resume`), plot a run's losses, and
 //! prepare datasets (generate the procedural dataset, render swaps, inspect and cache
 //! image folders).
+mod eval_cmd;
 mod plot_cmd;
 mod train_cmd;
 
@@ -39,6 +40,10 @@ enum Command {
     Dataset(DatasetCommand),
     /// Draw a run's loss curves, gradient norms, learning rates and speed to a PNG.
     Plot(plot_cmd::PlotArgs),
+    /// Score a generator (Fréchet/kernel distances, topology coverage, disentanglement,
+    /// pose consistency beside real-data and random-generator ends), or train the probe
+    /// those scores need (`eval train-probe`).
+    Eval(eval_cmd::EvalArgs),
 }
 
 #[derive(Subcommand)]
@@ -179,6 +184,7 @@ fn main() {
         )),
         Some(Command::Dataset(cmd)) => dataset(cmd),
         Some(Command::Plot(a)) => plot_cmd::plot(a),
+        Some(Command::Eval(a)) => eval_cmd::eval(a),
         None if cli.train.any() => train_cmd::train(cli.train),
         None => Err(anyhow::anyhow!("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`")),
     };

@@ -135,3 +135,25 @@ channels = [4, 4, 4, 4, 4, 4, 4, 4, 4]
 "#
     )
 }
+
+/// Element-wise check |got − want| ≤ atol + rtol·|want| (in float64); panics naming the
+/// worst element, its two values and how many elements fail. Returns the worst excess ratio
+/// |Δ| / (atol + rtol·|want|) for reporting.
+pub fn assert_close(name: &str, got: &Tensor, want: &Tensor, atol: f64, rtol: f64) -> f64 {
+    assert_eq!(got.size(), want.size(), "{name}: shape {:?} vs reference {:?}", got.size(), want.size());
+    let g = got.detach().to_device(tch::Device::Cpu).to_kind(tch::Kind::Double).flatten(0, -1);
+    let w = want.detach().to_device(tch::Device::Cpu).to_kind(tch::Kind::Double).flatten(0, -1);
+    assert!(bool::try_from(g.isfinite().all()).unwrap(), "{name}: non-finite values");
+    let ratio = (&g - &w).abs() / (w.abs() * rtol + atol);
+    let worst = i64::try_from(ratio.argmax(None, false)).unwrap();
+    let r = f64::try_from(ratio.get(worst)).unwrap();
+    let fails = i64::try_from(ratio.gt(1.0).sum(tch::Kind::Int64)).unwrap();
+    assert!(
+        fails == 0,
+        "{name}: {fails} of {} elements exceed atol {atol:e} + rtol {rtol:e}; worst at {worst}: got {}, want {}",
+        g.numel(),
+        f64::try_from(g.get(worst)).unwrap(),
+        f64::try_from(w.get(worst)).unwrap()
+    );
+    r
+}

@@ -104,6 +104,29 @@ impl Default for ScheduleConfig {
     }
 }
 
+/// Scores of the EMA generator during training (`gdrf-train eval`'s code on fewer images),
+/// written to metrics.jsonl as `{"event": "eval", …}` lines.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainEvalConfig {
+    /// Every this many steps (0 = never). Needs `probe` and a procedural dataset in `[data]`.
+    pub interval: i64,
+    /// Generated images per evaluation.
+    pub num: i64,
+    /// Side of the swap matrix.
+    pub swap: i64,
+    /// Coarse samples per ray (as many fine).
+    pub steps: i64,
+    /// The probe from `gdrf-train eval train-probe`, relative to the config file.
+    pub probe: Option<std::path::PathBuf>,
+}
+
+impl Default for TrainEvalConfig {
+    fn default() -> Self {
+        Self { interval: 0, num: 200, swap: 4, steps: 12, probe: None }
+    }
+}
+
 /// The preview grids written every `sample_interval` steps.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -207,6 +230,8 @@ pub struct TrainConfig {
     #[serde(default)]
     pub samples: SampleConfig,
     #[serde(default)]
+    pub eval: TrainEvalConfig,
+    #[serde(default)]
     pub guard: GuardConfig,
     #[serde(default)]
     pub debug: DebugConfig,
@@ -244,6 +269,7 @@ impl TrainConfig {
         cfg.data.path = lexical_join(base, &cfg.data.path);
         cfg.data.poses = cfg.data.poses.map(|p| lexical_join(base, &p));
         cfg.data.cache_dir = cfg.data.cache_dir.map(|p| lexical_join(base, &p));
+        cfg.eval.probe = cfg.eval.probe.map(|p| lexical_join(base, &p));
         cfg.validate()?;
         Ok(cfg)
     }
@@ -301,6 +327,19 @@ impl TrainConfig {
         }
         if s.keep_checkpoints < 1 {
             return Err(cfg_err("schedule.keep_checkpoints is 0, expected at least 1".into()));
+        }
+        let e = &self.eval;
+        if e.interval < 0 || e.num < 2 || e.swap < 2 || e.steps < 2 {
+            return Err(cfg_err(format!(
+                "eval: interval {}, num {}, swap {}, steps {}: expected interval ≥ 0 (0 = never) and num, swap, steps ≥ 2",
+                e.interval, e.num, e.swap, e.steps
+            )));
+        }
+        if e.interval > 0 && e.probe.is_none() {
+            return Err(cfg_err(format!(
+                "eval.interval is {} but eval.probe is not set: scores need a probe (make one with `gdrf-train eval train-probe --dataset DIR`)",
+                e.interval
+            )));
         }
         if s.sample_interval < 0 {
             return Err(cfg_err(format!("schedule.sample_interval is {}, expected 0 (never) or more", s.sample_interval)));

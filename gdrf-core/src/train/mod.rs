@@ -162,6 +162,8 @@ pub struct Trainer {
     permutation: Option<(i64, Vec<i64>)>,
     /// Injected faults already fired (not saved: a replay after a rollback runs clean).
     injected: BTreeSet<i64>,
+    /// The evaluation's real-data side, built at the first `eval.interval` step.
+    evaluator: Option<crate::eval::report::Evaluator>,
 }
 
 impl Trainer {
@@ -200,6 +202,7 @@ impl Trainer {
             datasets: BTreeMap::new(),
             permutation: None,
             injected: BTreeSet::new(),
+            evaluator: None,
         })
     }
 
@@ -723,6 +726,10 @@ impl Trainer {
             if s.sample_interval > 0 && done % s.sample_interval == 0 {
                 samples::write_previews(self)?;
             }
+            if self.cfg.eval.interval > 0 && done % self.cfg.eval.interval == 0 {
+                let line = self.evaluate()?;
+                run::append_metrics(&self.run_dir, &line)?;
+            }
         };
         if saved_at != self.progress.step {
             self.save_checkpoint()?;
@@ -731,6 +738,50 @@ impl Trainer {
             }
         }
         Ok(stopped)
+    }
+
+    /// Scores the EMA generator with `gdrf-train eval`'s code (`[eval]` settings, the
+    /// dataset of `[data]`): the metrics.jsonl line `{"event": "eval", "step", …}`.
+    pub fn evaluate(&mut self) -> Result<serde_json::Value> {
+        use crate::eval::report::{EvalOptions, Evaluator, FeatureKind};
+        let e = &self.cfg.eval;
+        let probe = e.probe.clone().ok_or_else(|| Error::Config("eval.probe is not set".into()))?;
+        if self.evaluator.is_none() {
+            let opts = EvalOptions {
+                num: e.num,
+                swap: e.swap,
+                resolution: None,
+                steps: e.steps,
+                seed: self.cfg.seed,
+                features: FeatureKind::Efficientnet,
+                effnet_weights: crate::eval::effnet::EfficientNetLite0::default_path(),
+                threads: self.cfg.threads,
+            };
+            self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
+        }
+        let ev = self.evaluator.as_ref().expect("built above");
+        let start = Instant::now();
+        let s = ev.score(&self.ema_generator, &self.cfg.camera, "EMA generator", &mut |_, _, _| {})?;
+        Ok(serde_json::json!({
+            "event": "eval",
+            "step": self.progress.step,
+            "images": e.num,
+            "frechet": s.frechet,
+            "kernel": s.kernel,
+            "coverage_tv": s.coverage_tv,
+            "shape_follows": s.shape_follows,
+            "appearance_follows": s.appearance_follows,
+            "pose_yaw_error_deg": s.yaw_error_deg,
+            "real_end": {
+                "frechet": ev.real.frechet,
+                "kernel": ev.real.kernel,
+                "coverage_tv": ev.real.coverage_tv,
+                "shape_follows": ev.real.shape_follows,
+                "appearance_follows": ev.real.appearance_follows,
+                "pose_yaw_error_deg": ev.real.yaw_error_deg,
+            },
+            "seconds": start.elapsed().as_secs_f64(),
+        }))
     }
 
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).

@@ -89,6 +89,19 @@ impl Material {
         Self { base, accent, pattern }
     }
 
+    /// The albedo averaged over the pattern (the fraction of accent: 0 plain, `duty` for
+    /// stripes, ½ for the checker, ¼ for grain, whose dark band is ring³): the colour a
+    /// part shows from afar, what the evaluation's probe learns to read.
+    pub fn mean_albedo(&self) -> [f32; 3] {
+        let t = match &self.pattern {
+            Pattern::Plain => 0.0,
+            Pattern::Stripes { duty, .. } => *duty,
+            Pattern::Checker { .. } => 0.5,
+            Pattern::Grain { .. } => 0.25,
+        };
+        [0, 1, 2].map(|i| self.base[i] * (1.0 - t) + self.accent[i] * t)
+    }
+
     /// Albedo at part-space point `q`.
     pub fn albedo(&self, q: V3) -> [f32; 3] {
         let t = match &self.pattern {

