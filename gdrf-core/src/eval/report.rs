@@ -107,7 +107,7 @@ pub struct EvalResult {
     #[serde(skip)]
     pub swap_images: Tensor,
     #[serde(skip)]
-    pub swap_verdicts: Vec<(bool, bool)>,
+    pub swap_verdicts: Vec<Verdict>,
     #[serde(skip)]
     pub swap_side: i64,
 }
@@ -128,6 +128,10 @@ fn render_codes(g: &Generator, cam: &CameraConfig, rc: &RenderConfig, zs: &Tenso
     }
     Ok(Tensor::cat(&out, 0))
 }
+
+/// A swap cell's verdicts (structure follows the row, colour follows the column); None
+/// where the originals do not differ (and on the diagonal).
+pub type Verdict = (Option<bool>, Option<bool>);
 
 /// Bins per channel of the foreground colour histograms.
 const HIST_BINS: i64 = 4;
@@ -151,7 +155,7 @@ pub fn colour_histograms(images: &Tensor) -> Tensor {
 /// histograms ([`colour_histograms`], L1), over pairs whose originals differ by more than
 /// 0.3 — the probe's own colour head is not used here because it reads part colours
 /// partly from shape (on the dataset's own swaps its predictions followed the row).
-fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<(bool, bool)>) {
+fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<Verdict>) {
     let classes = Vec::<i64>::try_from(pred.classes.flatten(0, -1)).unwrap();
     let cls = |i: i64, j: i64, f: usize| classes[((i * k + j) * 4) as usize + f];
     let h = |i: i64, j: i64| hist.get(i * k + j);
@@ -160,21 +164,21 @@ fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<(boo
     let mut verdicts = Vec::new();
     for i in 0..k {
         for j in 0..k {
-            let (mut shape_ok, mut colour_ok) = (true, true);
+            let (mut shape_ok, mut colour_ok) = (None, None);
             if i != j {
                 for f in 0..4 {
                     if cls(i, i, f) != cls(j, j, f) {
                         s_n += 1;
                         let ok = cls(i, j, f) == cls(i, i, f);
                         s_hit += ok as usize;
-                        shape_ok &= ok;
+                        shape_ok = Some(shape_ok.unwrap_or(true) && ok);
                     }
                 }
                 if l1(&h(i, i), &h(j, j)) > 0.3 {
                     a_n += 1;
                     let ok = l1(&h(i, j), &h(j, j)) < l1(&h(i, j), &h(i, i));
                     a_hit += ok as usize;
-                    colour_ok = ok;
+                    colour_ok = Some(ok);
                 }
             }
             verdicts.push((shape_ok, colour_ok));
@@ -219,7 +223,7 @@ pub struct Scores {
     pub samples: Tensor,
     /// The swap matrix `(k², 3, S, S)` and its verdicts.
     pub swap_images: Tensor,
-    pub swap_verdicts: Vec<(bool, bool)>,
+    pub swap_verdicts: Vec<Verdict>,
 }
 
 /// The real data's side of the evaluation, computed once: the reference features, the
@@ -532,7 +536,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     y += 12;
     image::imageops::overlay(&mut img, &grid, 10, y);
     y += grid.height() as i64 + 16;
-    draw_text(&mut img, 10, y, "predicted classes: held-out truth / model / random", black, 1);
+    draw_text(&mut img, 10, y, "classes: grey held-out truth, blue model, orange random generator", black, 1);
     y += 14;
     let colours = [Rgb([90, 90, 90]), Rgb([40, 110, 220]), Rgb([220, 120, 40])];
     let mut x = 10;
@@ -550,7 +554,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         x += 16;
     }
     y += hist_h + 12;
-    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance; bars: structure, colour verdicts", black, 1);
+    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance. bars: structure, colour verdicts: green yes, red no, grey not counted", black, 1);
     y += 14;
     let sw = io::to_rgb8(&io::grid(&r.swap_images, k), false)?;
     for i in 0..k {
@@ -560,7 +564,11 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
             image::imageops::overlay(&mut img, &tile, tx, ty);
             if i != j {
                 let (shape_ok, colour_ok) = r.swap_verdicts[(i * k + j) as usize];
-                let c = |ok: bool| if ok { Rgb([30, 170, 60]) } else { Rgb([210, 40, 40]) };
+                let c = |v: Option<bool>| match v {
+                    Some(true) => Rgb([30, 170, 60]),
+                    Some(false) => Rgb([210, 40, 40]),
+                    None => Rgb([190, 190, 190]),
+                };
                 fill(&mut img, tx, ty + s + 1, s / 2 - 1, 3, c(shape_ok));
                 fill(&mut img, tx + s / 2 + 1, ty + s + 1, s / 2 - 1, 3, c(colour_ok));
             }
@@ -601,7 +609,8 @@ mod tests {
         let (shape, app, verdicts) = swap_scores(&pred, &hist, 2);
         assert_eq!(shape, 0.5);
         assert_eq!(app, 0.5);
-        assert_eq!(verdicts, vec![(true, true), (true, true), (false, false), (true, true)]);
+        let (t, f) = (Some(true), Some(false));
+        assert_eq!(verdicts, vec![(None, None), (t, t), (f, f), (None, None)]);
         assert_eq!(f64::try_from(colour_histograms(&Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu))).sum(Kind::Double)).unwrap(), 0.0);
         let c = Calibrated::new(5.0, 1.0, 9.0);
         assert_eq!(c.position, 0.5);

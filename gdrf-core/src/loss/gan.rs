@@ -45,13 +45,24 @@ pub fn pose_loss(pred: &Tensor, target: &Tensor) -> Tensor {
 
 /// The latent-prediction loss MSE(pred, z) (weight 0 in the release configs).
 pub fn latent_loss(pred: &Tensor, z: &Tensor) -> Tensor {
-    pred.mse_loss(z, tch::Reduction::Mean)
+    // The head is 256 wide (the release's latent size); a smaller code is predicted by
+    // its first entries (the configuration refuses codes wider than the head).
+    pred.narrow(1, 0, z.size()[1]).mse_loss(z, tch::Reduction::Mean)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use tch::Kind;
+
+    #[test]
+    fn latent_loss_reads_the_first_entries_of_the_head() {
+        let pred = Tensor::zeros([2, 256], (Kind::Double, tch::Device::Cpu));
+        let _ = pred.narrow(1, 8, 248).fill_(5.0);
+        let z = Tensor::ones([2, 8], (Kind::Double, tch::Device::Cpu));
+        // Only the first 8 entries (all 0) are compared with z (all 1): MSE exactly 1.
+        assert_eq!(f64::try_from(latent_loss(&pred, &z)).unwrap(), 1.0);
+    }
 
     #[test]
     fn topk_follows_the_release_schedule() {

@@ -328,6 +328,17 @@ impl TrainConfig {
         if s.keep_checkpoints < 1 {
             return Err(cfg_err("schedule.keep_checkpoints is 0, expected at least 1".into()));
         }
+        let lw = self.loss.latent_weight;
+        if !(lw >= 0.0 && lw.is_finite()) {
+            return Err(cfg_err(format!("loss.latent_weight is {lw}, expected 0 (off) or a positive weight")));
+        }
+        if lw > 0.0 && self.generator.latent_dim as i64 > crate::disc::LATENT_DIM {
+            return Err(cfg_err(format!(
+                "loss.latent_weight is {lw} but generator.latent_dim {} is wider than the discriminator's latent head ({})",
+                self.generator.latent_dim,
+                crate::disc::LATENT_DIM
+            )));
+        }
         let e = &self.eval;
         if e.interval < 0 || e.num < 2 || e.swap < 2 || e.steps < 2 {
             return Err(cfg_err(format!(
@@ -522,6 +533,11 @@ path = "data/x"
             ("[loss]\nr1_interval = 0", "loss.r1_interval"),
             ("device = \"tpu\"", "device"),
             ("precision = \"float8\"", "precision"),
+            ("[discriminator]\nminibatch_std_group = -1", "discriminator.minibatch_std_group"),
+            ("[loss]\nlatent_weight = -1.0", "loss.latent_weight"),
+            ("[generator]\nlatent_dim = 300\n[loss]\nlatent_weight = 1.0", "generator.latent_dim"),
+            ("[eval]\ninterval = 100", "eval.probe"),
+            ("[eval]\nnum = 1", "eval"),
         ];
         for (extra, key) in cases {
             let e = parse(extra).unwrap_err().to_string();
