@@ -73,6 +73,10 @@ struct RenderArgs {
     no_deformation: bool,
     #[arg(long)]
     no_correction: bool,
+    /// Density-first: shade only samples whose weight exceeds this (the pixel moves by at
+    /// most this × samples per ray); 0 shades every sample (the reference sampler).
+    #[arg(long, default_value_t = 0.0)]
+    min_weight: f64,
     /// Samples evaluated at once; bounds memory. Small chunks are also faster on CPU.
     #[arg(long, default_value_t = 1 << 14)]
     chunk_points: usize,
@@ -143,6 +147,7 @@ fn render(a: RenderArgs) -> Result<()> {
         jitter: !a.no_jitter,
         force_last_white: a.force_last_white,
         chunk_points: a.chunk_points,
+        shade_min_weight: a.min_weight,
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;

@@ -3,6 +3,8 @@
 pub mod composite;
 pub mod renderer;
 pub mod samplers;
+pub mod staged;
 
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
-pub use renderer::{assemble_image, Image, Noise, RenderedRays, Renderer};
+pub use renderer::{assemble_image, DensitySamples, Image, Noise, RenderedRays, Renderer};
+pub use staged::ShapeSide;

@@ -5,6 +5,7 @@ use super::samplers::{gather_samples, importance_depths, sort_depths, stratified
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::{FieldOptions, Generator, Latents};
+use crate::nn::film::Film;
 use crate::{Error, Result};
 use tch::Tensor;
 
@@ -20,10 +21,21 @@ pub struct Noise {
 
 impl Noise {
     /// Rays `[start, start+len)` of images `[b, b+nb)`.
-    fn slice(&self, b: i64, nb: i64, start: i64, len: i64) -> Noise {
+    pub(crate) fn slice(&self, b: i64, nb: i64, start: i64, len: i64) -> Noise {
         let f = |t: &Option<Tensor>| t.as_ref().map(|t| t.narrow(0, b, nb).narrow(1, start, len));
         Noise { jitter: f(&self.jitter), importance: f(&self.importance) }
     }
+}
+
+/// What the density pass computes for every sample, sorted by depth.
+#[derive(Debug)]
+pub struct DensitySamples {
+    /// `(B, R, S)` sorted depths.
+    pub z: Tensor,
+    /// `(B, R, S, 1)` raw densities.
+    pub sigma: Tensor,
+    /// `(B, R, S, F)` template features f_t (what colour needs).
+    pub feature: Tensor,
 }
 
 /// Per-ray results of [`Renderer::render_rays`].
@@ -93,12 +105,12 @@ impl<'a> Renderer<'a> {
         Ok(Self { generator, camera, config, field: FieldOptions::default() })
     }
 
-    fn composite_options(&self) -> CompositeOptions {
+    pub(crate) fn composite_options(&self) -> CompositeOptions {
         self.config.into()
     }
 
     /// View directions fed to the colour branch for every sample: `(B, R·S, 3)`.
-    fn sample_dirs(&self, dirs: &Tensor, s: i64) -> Tensor {
+    pub(crate) fn sample_dirs(&self, dirs: &Tensor, s: i64) -> Tensor {
         let (b, r) = (dirs.size()[0], dirs.size()[1]);
         let d = if self.camera.lock_view_dependence {
             let locked = dirs.zeros_like();
@@ -110,15 +122,13 @@ impl<'a> Renderer<'a> {
         d.unsqueeze(2).expand([b, r, s, 3], false).reshape([b, r * s, 3])
     }
 
-    /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
-    /// autograd is enabled). Missing noise is drawn from libtorch's generator.
-    pub fn render_rays(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+    /// The density pass (the shape side): coarse stratified depths, importance depths drawn
+    /// from the coarse weights, Φ and T_σ at both — no colour — merged and sorted.
+    /// Missing noise is drawn from libtorch's generator.
+    pub fn density_pass(&self, shape: &Film, rays: &Rays, noise: &Noise) -> Result<DensitySamples> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        if latents.batch_size() != b {
-            return Err(Error::Invalid(format!(
-                "{} latents for a batch of {b} ray sets",
-                latents.batch_size()
-            )));
+        if shape.batch_size() != b {
+            return Err(Error::Invalid(format!("{} latents for a batch of {b} ray sets", shape.batch_size())));
         }
         let cfg = self.config;
         let n = cfg.num_steps as i64;
@@ -139,13 +149,10 @@ impl<'a> Renderer<'a> {
             }
         };
         let z_c = stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts);
-        let coarse = gen.density(&at(&z_c), &latents.shape, self.field);
+        let coarse = gen.density(&at(&z_c), shape, self.field);
         let sigma_c = coarse.sigma.view([b, r, n, 1]);
-
-        // Colour is pointwise: it is evaluated per pass and only rgb is permuted by the sort.
-        let dirs = self.sample_dirs(&rays.dirs, n);
-        let color = |feature: &Tensor| gen.color(feature, &dirs, &latents.appearance).view([b, r, n, 3]);
-        let (z, sigma, rgb) = if cfg.hierarchical {
+        let feature_c = coarse.feature.view([b, r, n, -1]);
+        let (z, sigma, feature) = if cfg.hierarchical {
             let z_f = tch::no_grad(|| {
                 let w = weights_from_density(&sigma_c, &z_c.unsqueeze(-1), cfg.delta_final);
                 let u = match &noise.importance {
@@ -155,24 +162,41 @@ impl<'a> Renderer<'a> {
                 importance_depths(&z_c.reshape([b * r, n]), &w.reshape([b * r, n]), &u.reshape([b * r, n]))
                     .view([b, r, n])
             });
-            let fine = gen.density(&at(&z_f), &latents.shape, self.field);
+            let fine = gen.density(&at(&z_f), shape, self.field);
             (
                 Tensor::cat(&[z_f, z_c], 2),
                 Tensor::cat(&[fine.sigma.view([b, r, n, 1]), sigma_c], 2),
-                Tensor::cat(&[color(&fine.feature), color(&coarse.feature)], 2),
+                Tensor::cat(&[fine.feature.view([b, r, n, -1]), feature_c], 2),
             )
         } else {
-            (z_c, sigma_c, color(&coarse.feature))
+            (z_c, sigma_c, feature_c)
         };
         let (z, idx) = sort_depths(&z);
-        let rgb = gather_samples(&rgb, &idx);
-        let sigma = gather_samples(&sigma, &idx);
-        let c = composite(&rgb, &sigma, &z.unsqueeze(-1), &self.composite_options());
+        Ok(DensitySamples { sigma: gather_samples(&sigma, &idx), feature: gather_samples(&feature, &idx), z })
+    }
+
+    /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
+    /// autograd is enabled): the density pass, then colour on every sample (the reference
+    /// sampler). Missing noise is drawn from libtorch's generator.
+    pub fn render_rays(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+        if latents.batch_size() != rays.dirs.size()[0] {
+            return Err(Error::Invalid(format!(
+                "{} latents for a batch of {} ray sets",
+                latents.batch_size(),
+                rays.dirs.size()[0]
+            )));
+        }
+        let d = self.density_pass(&latents.shape, rays, noise)?;
+        let s = d.z.size();
+        let (b, r, n) = (s[0], s[1], s[2]);
+        let feature = d.feature.reshape([b, r * n, -1]);
+        let rgb = self.generator.color(&feature, &self.sample_dirs(&rays.dirs, n), &latents.appearance).view([b, r, n, 3]);
+        let c = composite(&rgb, &d.sigma, &d.z.unsqueeze(-1), &self.composite_options());
         Ok(RenderedRays {
             pixel: c.pixel,
             depth: c.depth,
             opacity: c.opacity,
-            z,
+            z: d.z,
             weights: c.weights,
             origins: rays.origins.shallow_clone(),
             dirs: rays.dirs.shallow_clone(),
@@ -187,10 +211,16 @@ impl<'a> Renderer<'a> {
         let (mut pix, mut depth, mut opacity) = (Vec::new(), Vec::new(), Vec::new());
         tch::no_grad(|| -> Result<()> {
             for i in 0..b {
-                let out = self.render_rays_chunked(&latents.narrow(i, 1), &rays.narrow_batch(i, 1), &noise.slice(i, 1, 0, r))?;
-                pix.push(out.pixel);
-                depth.push(out.depth);
-                opacity.push(out.opacity);
+                let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
+                let (p, d, o) = if self.config.shade_min_weight > 0.0 {
+                    self.render_staged_chunked(&lat, &rays, &noise)?
+                } else {
+                    let out = self.render_rays_chunked(&lat, &rays, &noise)?;
+                    (out.pixel, out.depth, out.opacity)
+                };
+                pix.push(p);
+                depth.push(d);
+                opacity.push(o);
             }
             Ok(())
         })?;
@@ -243,6 +273,11 @@ impl<'a> Renderer<'a> {
         })
     }
 
+    /// Ray chunk length for `per_ray` samples per ray over `b` images.
+    pub(crate) fn chunk_rays(&self, per_ray: i64, b: i64) -> i64 {
+        (self.config.chunk_points as i64 / (per_ray * b).max(1)).max(1)
+    }
+
     /// Runs `f(start, len)` over consecutive ray ranges of about `chunk_points` samples
     /// (`per_ray` samples per ray, all images of the batch) and joins the results.
     fn in_chunks(
@@ -252,7 +287,7 @@ impl<'a> Renderer<'a> {
         f: impl Fn(i64, i64) -> Result<RenderedRays>,
     ) -> Result<RenderedRays> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        let chunk = (self.config.chunk_points as i64 / (per_ray * b).max(1)).max(1);
+        let chunk = self.chunk_rays(per_ray, b);
         if chunk >= r {
             return f(0, r);
         }
