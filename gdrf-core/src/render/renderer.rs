@@ -27,15 +27,26 @@ impl Noise {
     }
 }
 
-/// What the density pass computes for every sample, sorted by depth.
+/// What the density pass computes for every sample.
 #[derive(Debug)]
 pub struct DensitySamples {
     /// `(B, R, S)` sorted depths.
     pub z: Tensor,
-    /// `(B, R, S, 1)` raw densities.
+    /// `(B, R, S, 1)` raw densities, sorted.
     pub sigma: Tensor,
-    /// `(B, R, S, F)` template features f_t (what colour needs).
-    pub feature: Tensor,
+    /// Template features f_t (what colour needs) per pass — `(B, R, N, F)` each, fine then
+    /// coarse — in merge order: colour is pointwise, so the training path colours each pass
+    /// and sorts 3 channels instead of F.
+    pub features: Vec<Tensor>,
+    /// `(B, R, S)`: the merged samples' sort permutation.
+    pub order: Tensor,
+}
+
+impl DensitySamples {
+    /// `(B, R, S, F)` features sorted by depth.
+    pub fn sorted_features(&self) -> Tensor {
+        gather_samples(&Tensor::cat(&self.features, 2), &self.order)
+    }
 }
 
 /// Per-ray results of [`Renderer::render_rays`].
@@ -152,7 +163,7 @@ impl<'a> Renderer<'a> {
         let coarse = gen.density(&at(&z_c), shape, self.field);
         let sigma_c = coarse.sigma.view([b, r, n, 1]);
         let feature_c = coarse.feature.view([b, r, n, -1]);
-        let (z, sigma, feature) = if cfg.hierarchical {
+        let (z, sigma, features) = if cfg.hierarchical {
             let z_f = tch::no_grad(|| {
                 let w = weights_from_density(&sigma_c, &z_c.unsqueeze(-1), cfg.delta_final);
                 let u = match &noise.importance {
@@ -166,13 +177,13 @@ impl<'a> Renderer<'a> {
             (
                 Tensor::cat(&[z_f, z_c], 2),
                 Tensor::cat(&[fine.sigma.view([b, r, n, 1]), sigma_c], 2),
-                Tensor::cat(&[fine.feature.view([b, r, n, -1]), feature_c], 2),
+                vec![fine.feature.view([b, r, n, -1]), feature_c],
             )
         } else {
-            (z_c, sigma_c, feature_c)
+            (z_c, sigma_c, vec![feature_c])
         };
-        let (z, idx) = sort_depths(&z);
-        Ok(DensitySamples { sigma: gather_samples(&sigma, &idx), feature: gather_samples(&feature, &idx), z })
+        let (z, order) = sort_depths(&z);
+        Ok(DensitySamples { sigma: gather_samples(&sigma, &order), features, z, order })
     }
 
     /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
@@ -187,10 +198,17 @@ impl<'a> Renderer<'a> {
             )));
         }
         let d = self.density_pass(&latents.shape, rays, noise)?;
-        let s = d.z.size();
-        let (b, r, n) = (s[0], s[1], s[2]);
-        let feature = d.feature.reshape([b, r * n, -1]);
-        let rgb = self.generator.color(&feature, &self.sample_dirs(&rays.dirs, n), &latents.appearance).view([b, r, n, 3]);
+        let rgb: Vec<Tensor> = d
+            .features
+            .iter()
+            .map(|f| {
+                let s = f.size();
+                let (b, r, n) = (s[0], s[1], s[2]);
+                let dirs = self.sample_dirs(&rays.dirs, n);
+                self.generator.color(&f.reshape([b, r * n, -1]), &dirs, &latents.appearance).view([b, r, n, 3])
+            })
+            .collect();
+        let rgb = gather_samples(&Tensor::cat(&rgb, 2), &d.order);
         let c = composite(&rgb, &d.sigma, &d.z.unsqueeze(-1), &self.composite_options());
         Ok(RenderedRays {
             pixel: c.pixel,

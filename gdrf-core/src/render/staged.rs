@@ -53,14 +53,15 @@ impl Renderer<'_> {
             let keep = if min_weight > 0.0 { w.gt(min_weight) } else { w.ones_like().to_kind(Kind::Bool) };
             let flat = keep.nonzero().view([-1]);
             let dirs = self.sample_dirs(&rays.dirs, n).view([b * r * n, 3]);
-            let f = d.feature.size()[3];
+            let feature = d.sorted_features();
+            let f = feature.size()[3];
             Ok(ShapeSide {
                 batch: b,
                 rays: r,
                 image: flat.divide_scalar_mode(r * n, "floor"),
                 ray: flat.remainder(r * n).divide_scalar_mode(n, "floor"),
                 weights: w.index_select(0, &flat).unsqueeze(-1),
-                features: d.feature.view([b * r * n, f]).index_select(0, &flat),
+                features: feature.view([b * r * n, f]).index_select(0, &flat),
                 dirs: dirs.index_select(0, &flat),
                 last: flat.remainder(n).eq(n - 1),
                 opacity: c.opacity,
