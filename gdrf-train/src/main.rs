@@ -43,7 +43,7 @@ enum Command {
     /// Score a generator (Fréchet/kernel distances, topology coverage, disentanglement,
     /// pose consistency beside real-data and random-generator ends), or train the probe
     /// those scores need (`eval train-probe`).
-    Eval(eval_cmd::EvalArgs),
+    Eval(Box<eval_cmd::EvalArgs>),
 }
 
 #[derive(Subcommand)]
@@ -184,7 +184,7 @@ fn main() {
         )),
         Some(Command::Dataset(cmd)) => dataset(cmd),
         Some(Command::Plot(a)) => plot_cmd::plot(a),
-        Some(Command::Eval(a)) => eval_cmd::eval(a),
+        Some(Command::Eval(a)) => eval_cmd::eval(*a),
         None if cli.train.any() => train_cmd::train(cli.train),
         None => Err(anyhow::anyhow!("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`")),
     };

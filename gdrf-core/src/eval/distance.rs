@@ -153,8 +153,8 @@ pub fn kernel(a: &Tensor, b: &Tensor, subsets: usize, max_subset_size: i64, seed
         // Partial Fisher–Yates: the first `size` entries of a random permutation.
         let mut idx: Vec<i64> = (0..total).collect();
         let r = rng.u64s(size as usize);
-        for i in 0..size as usize {
-            let j = i + (r[i] % (total as u64 - i as u64)) as usize;
+        for (i, ri) in r.iter().enumerate() {
+            let j = i + (ri % (total as u64 - i as u64)) as usize;
             idx.swap(i, j);
         }
         idx.truncate(size as usize);

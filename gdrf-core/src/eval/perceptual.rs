@@ -38,7 +38,7 @@ impl EffnetPerceptual<'_> {
         for t in &f.taps {
             let u = unit(t);
             let d = (u.narrow(0, 0, b) - u.narrow(0, b, b)).square().sum_dim_intlist(1, false, Kind::Float);
-            total = total + d.mean_dim([1i64, 2].as_slice(), false, Kind::Float);
+            total += d.mean_dim([1i64, 2].as_slice(), false, Kind::Float);
         }
         Ok(total / f.taps.len() as f64)
     }

@@ -349,7 +349,6 @@ impl Probe {
         tch::manual_seed(cfg.seed as i64);
         let (vs, net) = Self::build(cfg.backbone, device);
         let mut opt = nn::Adam::default().build(&vs, cfg.lr)?;
-        let ce_weights: Vec<f64> = FACTORS.iter().map(|_| 1.0).collect();
         for epoch in 0..cfg.epochs {
             let mut rng = StepRng::new(cfg.seed, epoch as u64, Purpose::ProbeBatches, Kind::Float, Device::Cpu);
             let order = Tensor::from_slice(&rng.u64s(n as usize).iter().map(|&v| v as f64).collect::<Vec<_>>()).argsort(0, false);
@@ -364,7 +363,7 @@ impl Probe {
                 let (logits, colours, pose) = split_outputs(&out);
                 let mut loss = Tensor::zeros([], (Kind::Float, device));
                 for (f, l) in logits.iter().enumerate() {
-                    loss = loss + l.cross_entropy_for_logits(&t.classes.select(1, f as i64).to_device(device)) * ce_weights[f];
+                    loss += l.cross_entropy_for_logits(&t.classes.select(1, f as i64).to_device(device));
                 }
                 let m = t.colour_mask.to_device(device).unsqueeze(2);
                 let colour = ((&colours - t.colours.to_device(device)).square() * &m).sum(Kind::Float) / (m.sum(Kind::Float) * 3.0).clamp_min(1.0);

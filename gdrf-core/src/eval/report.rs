@@ -113,7 +113,9 @@ pub struct EvalResult {
 }
 
 /// Renders `z` at `poses` (batches of 16, no jitter).
-fn render_codes(g: &Generator, cam: &CameraConfig, rc: &RenderConfig, zs: &Tensor, za: &Tensor, poses: &Poses, res: i64, tick: &mut dyn FnMut(i64)) -> Result<Tensor> {
+/// `codes`: shape and appearance codes `(N, latent)` each.
+fn render_codes(g: &Generator, cam: &CameraConfig, rc: &RenderConfig, codes: (&Tensor, &Tensor), poses: &Poses, res: i64, tick: &mut dyn FnMut(i64)) -> Result<Tensor> {
+    let (zs, za) = codes;
     let renderer = Renderer::new(g, cam, rc)?;
     let n = zs.size()[0];
     let mut out = Vec::new();
@@ -204,7 +206,7 @@ fn coverage(pred: &Tensor, reference: &[Vec<f64>]) -> (f64, Vec<Vec<f64>>) {
 
 enum Extractor {
     Effnet,
-    Inception(InceptionV3),
+    Inception(Box<InceptionV3>),
 }
 
 /// What one distribution of images (a generator's, or the real data's) scores.
@@ -257,7 +259,7 @@ impl Evaluator {
         let effnet = EfficientNetLite0::load(&opts.effnet_weights, device)?;
         let extractor = match &opts.features {
             FeatureKind::Efficientnet => Extractor::Effnet,
-            FeatureKind::Inception(p) => Extractor::Inception(InceptionV3::load(p, device)?),
+            FeatureKind::Inception(p) => Extractor::Inception(Box::new(InceptionV3::load(p, device)?)),
         };
         progress("loading the dataset", 0, 1);
         let data = probe::load_labelled(dataset, res as usize, opts.threads, &|| {})?;
@@ -388,8 +390,8 @@ impl Evaluator {
             done += b;
             progress(&label, done, total);
         };
-        let imgs = render_codes(g, cam, &rc, &z, &z, &poses, res, &mut tick)?;
-        let swap = render_codes(g, cam, &rc, &swap_s, &swap_a, &swap_poses, res, &mut tick)?;
+        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, &mut tick)?;
+        let swap = render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
         self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)
     }
 }
