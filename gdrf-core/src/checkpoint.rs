@@ -203,37 +203,43 @@ impl Checkpoint {
     /// Copies the tensors into `vs`. Every variable must be present with its exact shape,
     /// and the file may hold nothing else.
     pub fn load_into(&self, vs: &mut nn::VarStore) -> Result<()> {
-        let path = &self.path;
-        let shape = |t: &Tensor| t.size().iter().map(|&d| d as usize).collect::<Vec<_>>();
-        let vars = vs.variables();
-        for (name, t) in &self.tensors {
-            if !vars.contains_key(name) {
-                return Err(Error::UnexpectedTensor { path: path.clone(), name: name.clone(), found: shape(t) });
-            }
+        copy_into(&self.path, &self.tensors, vs)
+    }
+}
+
+/// Copies tensors read from `path` into `vs`: every variable must be present with its
+/// exact shape, and nothing else may be there (errors name the tensor and both shapes).
+pub fn copy_into(path: &Path, tensors: &BTreeMap<String, Tensor>, vs: &mut nn::VarStore) -> Result<()> {
+    let path = &path.to_path_buf();
+    let shape = |t: &Tensor| t.size().iter().map(|&d| d as usize).collect::<Vec<_>>();
+    let vars = vs.variables();
+    for (name, t) in tensors {
+        if !vars.contains_key(name) {
+            return Err(Error::UnexpectedTensor { path: path.clone(), name: name.clone(), found: shape(t) });
         }
-        let mut names: Vec<_> = vars.keys().cloned().collect();
-        names.sort();
-        tch::no_grad(|| {
-            for name in names {
-                let mut var = vars[&name].shallow_clone();
-                let src = self.tensors.get(&name).ok_or_else(|| Error::MissingTensor {
+    }
+    let mut names: Vec<_> = vars.keys().cloned().collect();
+    names.sort();
+    tch::no_grad(|| {
+        for name in names {
+            let mut var = vars[&name].shallow_clone();
+            let src = tensors.get(&name).ok_or_else(|| Error::MissingTensor {
+                path: path.clone(),
+                name: name.clone(),
+                expected: shape(&var),
+            })?;
+            if src.size() != var.size() {
+                return Err(Error::ShapeMismatch {
                     path: path.clone(),
                     name: name.clone(),
+                    found: shape(src),
                     expected: shape(&var),
-                })?;
-                if src.size() != var.size() {
-                    return Err(Error::ShapeMismatch {
-                        path: path.clone(),
-                        name: name.clone(),
-                        found: shape(src),
-                        expected: shape(&var),
-                    });
-                }
-                var.copy_(&src.to_kind(var.kind()).to_device(var.device()));
+                });
             }
-            Ok(())
-        })
-    }
+            var.copy_(&src.to_kind(var.kind()).to_device(var.device()));
+        }
+        Ok(())
+    })
 }
 
 /// A generator with its parameters.

@@ -7,7 +7,6 @@ use gdrf_core::data::synth::Split;
 use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
 use gdrf_core::eval::report::{self, EvalOptions, FeatureKind};
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -108,17 +107,6 @@ struct RunArgs {
     common: CommonArgs,
 }
 
-fn bar(len: u64, msg: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
-            .expect("static template")
-            .progress_chars("=> "),
-    );
-    pb.set_message(msg.to_string());
-    pb
-}
-
 fn effnet(common: &CommonArgs, device: tch::Device) -> Result<EfficientNetLite0> {
     let path = common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path);
     EfficientNetLite0::load(&path, device).with_context(|| {
@@ -144,17 +132,12 @@ fn train_probe(a: TrainProbeArgs) -> Result<()> {
     let device = setup(&a.common)?;
     let out = a.out.clone().unwrap_or_else(|| a.dataset.join(format!("probe-{}.safetensors", a.backbone)));
     let start = Instant::now();
-    let pb = bar(0, "loading the dataset");
+    let pb = super::bar(0, "loading the dataset");
     let data = probe::load_labelled(&a.dataset, 64, a.common.threads, &|| pb.inc(1))
         .with_context(|| format!("loading {} with its ground truth", a.dataset.display()))?;
     pb.finish_and_clear();
-    let (mut train_x, mut train_t, _) = data.split(Split::Train);
-    let (held_x, held_t, _) = data.split(Split::HeldOut);
-    if a.limit > 0 && (a.limit as i64) < train_x.size()[0] {
-        let idx = tch::Tensor::arange(a.limit as i64, (tch::Kind::Int64, tch::Device::Cpu));
-        train_x = train_x.index_select(0, &idx);
-        train_t = train_t.select(&idx);
-    }
+    let (train_x, train_t, _) = data.split(Split::Train, (a.limit > 0).then_some(a.limit));
+    let (held_x, held_t, _) = data.split(Split::HeldOut, None);
     if held_x.size()[0] == 0 {
         bail!("{}: the dataset has no held-out images to score the probe on", a.dataset.display());
     }
@@ -163,15 +146,14 @@ fn train_probe(a: TrainProbeArgs) -> Result<()> {
         Backbone::Scratch => None,
     };
     let n = train_x.size()[0] + held_x.size()[0];
-    let pb = bar(n as u64, "probe inputs");
-    let mut done = 0;
+    let pb = super::bar(n as usize, "probe inputs");
     let train_in = probe::probe_inputs(backbone, net.as_ref(), &train_x, 32, &mut |i| pb.set_position(i as u64))?;
-    done += train_x.size()[0];
+    let done = train_x.size()[0];
     let held_in = probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |i| pb.set_position((done + i) as u64))?;
     pb.finish_and_clear();
     let prep = start.elapsed().as_secs_f64();
     let cfg = ProbeConfig { backbone, epochs: a.epochs, batch_size: a.batch_size, lr: a.lr, seed: a.seed };
-    let pb = bar(a.epochs as u64, "training the probe");
+    let pb = super::bar(a.epochs, "training the probe");
     let probe = Probe::train(&cfg, (&train_in, &train_t), (&held_in, &held_t), device, &mut |e, loss| {
         pb.set_position(e as u64);
         pb.set_message(format!("training the probe (loss {loss:.3})"));
@@ -224,7 +206,7 @@ fn run(a: RunArgs) -> Result<()> {
         effnet_weights: a.common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path),
         threads: a.common.threads,
     };
-    let pb = bar(0, "evaluating");
+    let pb = super::bar(0, "evaluating");
     let start = Instant::now();
     let result = report::evaluate(generator, dataset, probe_path, &opts, device, &mut |stage, done, total| {
         pb.set_length(total as u64);

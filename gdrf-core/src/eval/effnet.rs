@@ -222,14 +222,10 @@ impl EfficientNetLite0 {
         pooled.linear(&self.fc_weight, Some(&self.fc_bias))
     }
 
-    /// `(N, 1280)` pooled features of images `(N, 3, H, W)` in [−1, 1] at 224², in batches
-    /// of `batch`, without gradients; `progress(done)` after each batch.
-    pub fn pooled_features(&self, images: &Tensor, batch: i64, progress: &mut dyn FnMut(i64)) -> Result<Tensor> {
-        Ok(self.pooled_and_last_tap(images, batch, progress)?.0)
-    }
-
-    /// The pooled features `(N, 1280)` and the last tap `(N, 320, 7, 7)` of one pass (the
-    /// distances and the probe share it), on the CPU.
+    /// The pooled features `(N, 1280)` and the last tap `(N, 320, 7, 7)` of images
+    /// `(N, 3, H, W)` in [−1, 1] at 224², in one pass (the distances and the probe share
+    /// it), in batches of `batch`, without gradients, on the CPU; `progress(done)` after
+    /// each batch.
     pub fn pooled_and_last_tap(&self, images: &Tensor, batch: i64, progress: &mut dyn FnMut(i64)) -> Result<(Tensor, Tensor)> {
         let n = images.size()[0];
         let (mut pooled, mut taps) = (Vec::new(), Vec::new());

@@ -8,7 +8,7 @@
 //! (a small head on frozen EfficientNet-Lite0 features: the last block's 320 × 7 × 7 map
 //! of the 224² input) and `scratch` (a four-layer CNN on the 64² image).
 use super::effnet::EfficientNetLite0;
-use crate::checkpoint::{load_tensors_with, tensors_to_bytes, write_atomic};
+use crate::checkpoint::{copy_into, load_tensors_with, tensors_to_bytes, write_atomic};
 use crate::data::synth::chairs::{Arms, Back, Legs, SeatShape};
 use crate::data::synth::{ImageRecord, Metadata, ShapeParams, Split};
 use crate::data::{self, LoadOptions};
@@ -411,12 +411,7 @@ impl Probe {
             return Err(not(format!("the probe predicts {:?}, this program expects {:?}", header.factors, want)));
         }
         let (mut vs, net) = Self::build(header.config.backbone, device);
-        let ck = crate::checkpoint::Checkpoint {
-            path: path.to_path_buf(),
-            header: crate::checkpoint::Header::generator(Default::default(), None),
-            tensors,
-        };
-        ck.load_into(&mut vs)?;
+        copy_into(path, &tensors, &mut vs)?;
         Ok(Self { vs, net, header })
     }
 }
@@ -430,9 +425,16 @@ pub struct Labelled {
 }
 
 impl Labelled {
-    /// Rows of one split.
-    pub fn split(&self, split: Split) -> (Tensor, Truth, Vec<ImageRecord>) {
-        let idx: Vec<i64> = self.records.iter().enumerate().filter(|(_, r)| r.split == split).map(|(i, _)| i as i64).collect();
+    /// The first `limit` rows of one split (all of them with `None`).
+    pub fn split(&self, split: Split, limit: Option<usize>) -> (Tensor, Truth, Vec<ImageRecord>) {
+        let idx: Vec<i64> = self
+            .records
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.split == split)
+            .map(|(i, _)| i as i64)
+            .take(limit.unwrap_or(usize::MAX))
+            .collect();
         let t = Tensor::from_slice(&idx);
         let records = idx.iter().map(|&i| self.records[i as usize].clone()).collect();
         (self.images.index_select(0, &t), self.truth.select(&t), records)

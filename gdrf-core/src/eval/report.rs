@@ -263,8 +263,9 @@ impl Evaluator {
         };
         progress("loading the dataset", 0, 1);
         let data = probe::load_labelled(dataset, res as usize, opts.threads, &|| {})?;
-        let (held_x, held_t, held_records) = data.split(Split::HeldOut);
-        let (train_x, train_t, _) = data.split(Split::Train);
+        let (held_x, held_t, held_records) = data.split(Split::HeldOut, None);
+        // The real end of the distances: as many training images as generated ones.
+        let (train_x, train_t, _) = data.split(Split::Train, Some(opts.num as usize));
         if held_x.size()[0] < 2 || train_x.size()[0] < 2 {
             return Err(Error::Data { path: dataset.to_path_buf(), reason: "fewer than 2 held-out or training images to compare with".into() });
         }
@@ -292,10 +293,7 @@ impl Evaluator {
         };
         let (held_feats, held_pred) = ev.features(&held_x, "features: held-out images", progress)?;
         ev.held_feats = held_feats;
-        let real_n = opts.num.min(train_x.size()[0]);
-        let real_train = train_x.narrow(0, 0, real_n);
-        let train_poses = train_t.poses.narrow(0, 0, real_n);
-        ev.real = ev.score_images(&real_train, &train_poses, &real_swap, k, "real images", progress)?;
+        ev.real = ev.score_images(&train_x, &train_t.poses, &real_swap, k, "real images", progress)?;
         // The probe's coverage and pose ends are taken on held-out images: on the training
         // images it learned from they would be optimistic.
         let p_real = match held_pred {

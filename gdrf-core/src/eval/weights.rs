@@ -34,10 +34,6 @@ impl Weights {
         Self { path: path.to_path_buf(), tensors, used: BTreeSet::new(), device }
     }
 
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
     /// The tensor `name`, which must have shape `shape`; float32 on the device, no gradient.
     pub fn get(&mut self, name: &str, shape: &[i64]) -> Result<Tensor> {
         let expected: Vec<usize> = shape.iter().map(|&d| d as usize).collect();
