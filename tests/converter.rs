@@ -22,7 +22,8 @@ fn ema_weights_replace_the_raw_weights() {
     let dir = TempDir::new("convert-ema");
     let d = |n: &str| dir.path(n).to_str().unwrap().to_string();
     run_python("reference/make_release_checkpoint.py", &["--out", &d("")]);
-    let (ok, err) = convert(&[&d("generator.pth"), &d("chair.safetensors"), "--ema", &d("ema.pth"), "--camera", "chair"]);
+    let (ok, err) =
+        convert(&[&d("generator.pth"), &d("chair.safetensors"), "--ema", &d("ema.pth"), "--camera", "chair"]);
     assert!(ok, "{err}");
     let g = load_generator(&dir.path("chair.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert_eq!(g.header.camera, Some(gdrf_core::CameraConfig::chair()));

@@ -74,7 +74,10 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let ta = g.appearance_from_z(z_a, Some(&trunc));
     let ws = Film::from_raw(case.want("shape_raw_trunc"));
     let wa = Film::from_raw(case.want("appearance_raw_trunc"));
-    rep.check_all("truncation ψ", &[(ts.gamma, ws.gamma), (ts.beta, ws.beta), (ta.gamma, wa.gamma), (ta.beta, wa.beta)]);
+    rep.check_all(
+        "truncation ψ",
+        &[(ts.gamma, ws.gamma), (ts.beta, ws.beta), (ta.gamma, wa.gamma), (ta.beta, wa.beta)],
+    );
 
     // Cameras and rays.
     let poses = Poses { pitch: case.get("ray_pitch").shallow_clone(), yaw: case.get("ray_yaw").shallow_clone() };
@@ -89,7 +92,11 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let opts = (kind, Device::Cpu);
     let zj = stratified_depths((b, 5), n, range, Some(case.get("strat_jitter")), opts);
     rep.check("stratified depths (jitter)", &zj, case.want("strat_z"));
-    rep.check("stratified depths (plain)", &stratified_depths((b, 5), n, range, None, opts), case.want("strat_z_plain"));
+    rep.check(
+        "stratified depths (plain)",
+        &stratified_depths((b, 5), n, range, None, opts),
+        case.want("strat_z_plain"),
+    );
     let fine = importance_depths(case.get("imp_z"), case.get("imp_weights"), case.get("imp_u"));
     rep.check("importance depths", &fine, case.want("imp_fine"));
 

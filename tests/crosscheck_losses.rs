@@ -10,8 +10,8 @@ use gdrf_core::checkpoint::load_generator;
 use gdrf_core::disc::Discriminator;
 use gdrf_core::loss::deform_reg::{select_samples, RegConfig, RegVariant};
 use gdrf_core::loss::{LossConfig, Losses, Schedule};
-use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::render::{Noise, RenderedRays, Renderer};
+use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::{CameraConfig, RenderConfig};
 use std::collections::HashMap;
 use tch::{nn, Device, Kind, Tensor};
@@ -117,7 +117,12 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let paper = RegConfig { variant: RegVariant::Paper, ..Default::default() };
     let samples = select_samples(&RenderedRays::concat(&parts), &paper, None);
     let reg = g.generator.regularisers(&latents.shape, &samples, RegVariant::Paper);
-    for (name, v) in [("correction", &reg.correction), ("smoothness", &reg.smoothness), ("rigidity", &reg.rigidity), ("normal", &reg.normal)] {
+    for (name, v) in [
+        ("correction", &reg.correction),
+        ("smoothness", &reg.smoothness),
+        ("rigidity", &reg.rigidity),
+        ("normal", &reg.normal),
+    ] {
         rep.check(&format!("paper variant {name}"), v, &t[&format!("expected.paper.{name}")]);
     }
     reg.weighted_sum(&paper).backward();

@@ -65,7 +65,19 @@ fn every_pixel_format_becomes_rgb_on_white() {
 
     let ds = load(d, &opts(4)).unwrap();
     assert_eq!(ds.layout, Layout::Folder);
-    assert_eq!(ds.names, ["a_rgb.png", "b_rgba.png", "c_gray.png", "d_gray_alpha.png", "e_rgb16.png", "f_palette.png", "g_photo.JPG", "h_gray.jpeg"]);
+    assert_eq!(
+        ds.names,
+        [
+            "a_rgb.png",
+            "b_rgba.png",
+            "c_gray.png",
+            "d_gray_alpha.png",
+            "e_rgb16.png",
+            "f_palette.png",
+            "g_photo.JPG",
+            "h_gray.jpeg"
+        ]
+    );
     assert!(ds.poses.is_none() && ds.skipped.is_empty());
     let want: [([u8; 3], i32); 8] = [
         ([10, 200, 30], 0),
@@ -92,9 +104,25 @@ fn non_square_images_are_centre_cropped_and_any_size_is_area_resized() {
     let tmp = TempDir::new("load-crop");
     let d = &tmp.0;
     // Wide: red | blue | green thirds → the centre square is blue.
-    let wide = ImageBuffer::from_fn(30, 10, |x, _| Rgb(if x < 10 { [255u8, 0, 0] } else if x < 20 { [0, 0, 255] } else { [0, 255, 0] }));
+    let wide = ImageBuffer::from_fn(30, 10, |x, _| {
+        Rgb(if x < 10 {
+            [255u8, 0, 0]
+        } else if x < 20 {
+            [0, 0, 255]
+        } else {
+            [0, 255, 0]
+        })
+    });
     wide.save(d.join("a_wide.png")).unwrap();
-    let tall = ImageBuffer::from_fn(10, 30, |_, y| Rgb(if y < 10 { [255u8, 0, 0] } else if y < 20 { [0, 0, 255] } else { [0, 255, 0] }));
+    let tall = ImageBuffer::from_fn(10, 30, |_, y| {
+        Rgb(if y < 10 {
+            [255u8, 0, 0]
+        } else if y < 20 {
+            [0, 0, 255]
+        } else {
+            [0, 255, 0]
+        })
+    });
     tall.save(d.join("b_tall.png")).unwrap();
     // A one-pixel checkerboard averages to mid grey.
     let checker = ImageBuffer::from_fn(64, 64, |x, y| Luma([if (x + y) % 2 == 0 { 0u8 } else { 255 }]));
@@ -164,7 +192,11 @@ fn bad_images(root: &Path) -> Vec<BadImage> {
             }),
             "truncated JPEG",
         ),
-        (root.join("garbage/x.png"), Box::new(|p: &Path| std::fs::write(p, b"hello, world").unwrap()), "not a PNG or JPEG"),
+        (
+            root.join("garbage/x.png"),
+            Box::new(|p: &Path| std::fs::write(p, b"hello, world").unwrap()),
+            "not a PNG or JPEG",
+        ),
         (
             root.join("dangling/x.png"),
             Box::new(|p: &Path| std::os::unix::fs::symlink(p.with_file_name("gone.png"), p).unwrap()),
@@ -233,7 +265,10 @@ fn camera_param_layout_reads_poses_and_rejects_inconsistencies() {
     assert!(ds.flip.is_none());
 
     // A pose naming a missing image.
-    write_poses(&poses, &[("0001.png", 0.9, 2.0), ("0002.png", 1.1, -0.5), ("0003.png", 1.3, 3.0), ("0004.png", 1.0, 0.0)]);
+    write_poses(
+        &poses,
+        &[("0001.png", 0.9, 2.0), ("0002.png", 1.1, -0.5), ("0003.png", 1.3, 3.0), ("0004.png", 1.0, 0.0)],
+    );
     let e = load(&d, &opts(8)).unwrap_err().to_string();
     assert!(e.contains("0004.png") && e.contains("missing") && e.contains(CAMERA_PARAM_FILE), "{e}");
     // An image without a pose.
@@ -342,7 +377,10 @@ fn the_cache_is_reused_rebuilt_when_files_change_and_survives_corruption() {
     assert!(second.pixels.equal(&first.pixels));
     assert_eq!(second.names, first.names);
     // Another resolution has its own cache.
-    assert!(matches!(load(&d, &LoadOptions { resolution: 4, ..o.clone() }).unwrap().cache, CacheStatus::Decoded(Some(_))));
+    assert!(matches!(
+        load(&d, &LoadOptions { resolution: 4, ..o.clone() }).unwrap().cache,
+        CacheStatus::Decoded(Some(_))
+    ));
     // A changed image invalidates the cache.
     solid_rgb(&d.join("2.png"), 24, 24, [250, 250, 250]);
     let third = load(&d, &o).unwrap();

@@ -142,14 +142,22 @@ fn recorded_poses_follow_the_camera_convention() {
         let img = render(&scene, r.pitch, r.yaw, &ro).unwrap();
         let (m, cx, cy) = centroid(img.alpha.iter().copied(), 64);
         let (px, py) = project(marker, r.pitch, r.yaw, 64, 50.0);
-        assert!(m > 3.0 && (cx - px).abs() < 0.5 && (cy - py).abs() < 0.5, "{}: marker at ({cx:.1}, {cy:.1}), projected ({px:.1}, {py:.1})", r.file);
+        assert!(
+            m > 3.0 && (cx - px).abs() < 0.5 && (cy - py).abs() < 0.5,
+            "{}: marker at ({cx:.1}, {cy:.1}), projected ({px:.1}, {py:.1})",
+            r.file
+        );
 
         // 2. The object's centre (the origin after fitting) projects to the middle of the
         //    image and the alpha mass in the PNG is around it.
         let (px, py) = project(V3::default(), r.pitch, r.yaw, 64, 50.0);
         assert!((px - 31.5).abs() < 1e-9 && (py - 31.5).abs() < 1e-9);
         let (m, cx, cy) = centroid(alpha_of_png(&dir.join(&r.file)).into_iter(), 64);
-        assert!(m > 50.0 && (cx - px).abs() < 9.0 && (cy - py).abs() < 9.0, "{}: alpha centroid ({cx:.1}, {cy:.1})", r.file);
+        assert!(
+            m > 50.0 && (cx - px).abs() < 9.0 && (cy - py).abs() < 9.0,
+            "{}: alpha centroid ({cx:.1}, {cy:.1})",
+            r.file
+        );
 
         // 3. Each part shows up around the projection of its primitives' centre.
         let scene = Scene::new(&r.shape.geometry(), &r.appearance, radius).unwrap();
@@ -162,7 +170,11 @@ fn recorded_poses_follow_the_camera_convention() {
             }
             let c = prims.iter().fold(V3::default(), |a, p| a + p.pos) * (1.0 / prims.len() as f32);
             let (px, py) = project(c, r.pitch, r.yaw, 64, 50.0);
-            assert!((cx - px).abs() < 8.0 && (cy - py).abs() < 8.0, "{} part {part}: seen at ({cx:.1}, {cy:.1}), projected ({px:.1}, {py:.1})", r.file);
+            assert!(
+                (cx - px).abs() < 8.0 && (cy - py).abs() < 8.0,
+                "{} part {part}: seen at ({cx:.1}, {cy:.1}), projected ({px:.1}, {py:.1})",
+                r.file
+            );
         }
     }
 }
@@ -270,7 +282,8 @@ fn slatted_ladder_and_frame_backs_have_holes() {
         (img, scene, row, left, right)
     };
     // Count covered runs along a row (alpha > 0.5), with background between them.
-    let runs = |alpha: &[f32]| alpha.windows(2).filter(|w| w[0] <= 0.5 && w[1] > 0.5).count() + usize::from(alpha[0] > 0.5);
+    let runs =
+        |alpha: &[f32]| alpha.windows(2).filter(|w| w[0] <= 0.5 && w[1] > 0.5).count() + usize::from(alpha[0] > 0.5);
     for count in 2..=6 {
         let c = ChairParams { back: Back::Slats { count }, ..chair() };
         let (img, _, row, left, right) = back_row(&c, 0.2);

@@ -18,11 +18,12 @@ fn gdrf_train(args: &[&str]) -> String {
 }
 
 fn accuracy_line(text: &str, factor: &str) -> (f64, f64) {
-    let line = text.lines().find(|l| l.trim_start().starts_with(factor)).unwrap_or_else(|| panic!("no {factor} line in:\n{text}"));
-    let nums: Vec<f64> = line
-        .split(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .filter_map(|s| s.parse().ok())
-        .collect();
+    let line = text
+        .lines()
+        .find(|l| l.trim_start().starts_with(factor))
+        .unwrap_or_else(|| panic!("no {factor} line in:\n{text}"));
+    let nums: Vec<f64> =
+        line.split(|c: char| !(c.is_ascii_digit() || c == '.')).filter_map(|s| s.parse().ok()).collect();
     (nums[0], nums[1])
 }
 
@@ -31,10 +32,36 @@ fn probe_learns_and_eval_is_calibrated() {
     let tmp = TempDir::new("eval-cli");
     let data = tmp.path("chairs");
     let d = data.to_str().unwrap();
-    gdrf_train(&["dataset", "synth", "--count", "800", "--resolution", "32", "--supersample", "1", "--held-out", "0.25", "--out", d]);
+    gdrf_train(&[
+        "dataset",
+        "synth",
+        "--count",
+        "800",
+        "--resolution",
+        "32",
+        "--supersample",
+        "1",
+        "--held-out",
+        "0.25",
+        "--out",
+        d,
+    ]);
 
     let probe = tmp.path("probe.safetensors");
-    let text = gdrf_train(&["eval", "train-probe", "--dataset", d, "--backbone", "scratch", "--epochs", "12", "--out", probe.to_str().unwrap(), "--threads", "2"]);
+    let text = gdrf_train(&[
+        "eval",
+        "train-probe",
+        "--dataset",
+        d,
+        "--backbone",
+        "scratch",
+        "--epochs",
+        "12",
+        "--out",
+        probe.to_str().unwrap(),
+        "--threads",
+        "2",
+    ]);
     println!("{text}");
     // Legs (5 kinds) and back (5 kinds) are what topology coverage rests on: each must
     // beat always answering the most frequent class by at least 15 points.
@@ -53,11 +80,27 @@ fn probe_learns_and_eval_is_calibrated() {
     save_generator(&gen, &vs, &Header::generator(cfg, Some(CameraConfig::chair()))).unwrap();
     let out = tmp.path("eval");
     let text = gdrf_train(&[
-        "eval", "--generator", gen.to_str().unwrap(), "--dataset", d, "--probe", probe.to_str().unwrap(),
-        "--num", "48", "--swap", "3", "--steps", "6", "--out", out.to_str().unwrap(), "--threads", "2",
+        "eval",
+        "--generator",
+        gen.to_str().unwrap(),
+        "--dataset",
+        d,
+        "--probe",
+        probe.to_str().unwrap(),
+        "--num",
+        "48",
+        "--swap",
+        "3",
+        "--steps",
+        "6",
+        "--out",
+        out.to_str().unwrap(),
+        "--threads",
+        "2",
     ]);
     println!("{text}");
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("eval.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("eval.json")).unwrap()).unwrap();
     let fd = |end: &str| json["frechet"][end].as_f64().unwrap();
     assert!(fd("real") * 3.0 < fd("random"), "Fréchet real {} vs random {}", fd("real"), fd("random"));
     let kid = |end: &str| json["kernel"][end].as_f64().unwrap();
@@ -86,8 +129,11 @@ fn probe_learns_and_eval_is_calibrated() {
     let run = tmp.path("run");
     gdrf_train(&["--config", cfg.to_str().unwrap(), "--run-dir", run.to_str().unwrap(), "--quiet"]);
     let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
-    let evals: Vec<serde_json::Value> =
-        metrics.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|v| v["event"] == "eval").collect();
+    let evals: Vec<serde_json::Value> = metrics
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["event"] == "eval")
+        .collect();
     assert_eq!(evals.len(), 1, "{metrics}");
     assert_eq!(evals[0]["step"], 2);
     assert!(evals[0]["frechet"].as_f64().unwrap() > 0.0);
@@ -97,7 +143,8 @@ fn probe_learns_and_eval_is_calibrated() {
 
 #[test]
 fn eval_errors_name_what_is_missing() {
-    let out = Command::new(env!("CARGO_BIN_EXE_gdrf-train")).args(["eval", "--generator", "g.safetensors"]).output().unwrap();
+    let out =
+        Command::new(env!("CARGO_BIN_EXE_gdrf-train")).args(["eval", "--generator", "g.safetensors"]).output().unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--dataset") && err.contains("--probe"), "{err}");

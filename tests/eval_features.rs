@@ -62,7 +62,14 @@ fn efficientnet_matches_the_pytorch_reference() {
 /// Renders `n` procedural chairs at 128² into a temporary dataset and loads them.
 fn chair_renders(tmp: &TempDir, n: usize) -> Tensor {
     let dir = tmp.path("chairs");
-    let opts = SynthOptions { category: Category::Chairs, count: n, resolution: 128, supersample: 2, seed: 11, ..Default::default() };
+    let opts = SynthOptions {
+        category: Category::Chairs,
+        count: n,
+        resolution: 128,
+        supersample: 2,
+        seed: 11,
+        ..Default::default()
+    };
     synth::generate(&dir, &opts, 2, &|| {}).unwrap();
     gdata::load(&dir, &LoadOptions::new(128), &|| {}).unwrap().images()
 }
@@ -115,11 +122,21 @@ fn a_weights_file_with_a_misshaped_tensor_names_it() {
     let list: Vec<(String, Tensor)> = Tensor::read_safetensors(&w)
         .unwrap()
         .into_iter()
-        .map(|(k, t)| if k == "_blocks.3._bn1.running_var" { (k, Tensor::ones([7], (Kind::Float, Device::Cpu))) } else { (k, t) })
+        .map(|(k, t)| {
+            if k == "_blocks.3._bn1.running_var" {
+                (k, Tensor::ones([7], (Kind::Float, Device::Cpu)))
+            } else {
+                (k, t)
+            }
+        })
         .collect();
-    let e = EfficientNetLite0::from_weights(Weights::from_tensors(&w, list, Device::Cpu), Device::Cpu).err().unwrap().to_string();
+    let e = EfficientNetLite0::from_weights(Weights::from_tensors(&w, list, Device::Cpu), Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("'_blocks.3._bn1.running_var'") && e.contains("[7]") && e.contains("[144]"), "{e}");
-    let e = EfficientNetLite0::load(&PathBuf::from("no/such/weights.safetensors"), Device::Cpu).err().unwrap().to_string();
+    let e =
+        EfficientNetLite0::load(&PathBuf::from("no/such/weights.safetensors"), Device::Cpu).err().unwrap().to_string();
     assert!(e.contains("no/such/weights.safetensors"), "{e}");
     let net = EfficientNetLite0::load(&w, Device::Cpu).unwrap();
     let e = net.prepare(&Tensor::zeros([2, 4, 8, 8], (Kind::Float, Device::Cpu)), 224).err().unwrap().to_string();
@@ -135,8 +152,9 @@ fn distances_match_numpy_and_scipy() {
     let mix = Tensor::randn([24, 24], opts) / 4.0;
     let a = Tensor::randn([400, 24], opts).matmul(&mix);
     let b = (Tensor::randn([300, 24], opts) * 1.3 + 0.2).matmul(&mix);
-    let subsets: Vec<(Vec<i64>, Vec<i64>)> =
-        (0..5).map(|s| ((0..100).map(|i| (i * 3 + s) % 400).collect(), (0..100).map(|i| (i * 2 + s) % 300).collect())).collect();
+    let subsets: Vec<(Vec<i64>, Vec<i64>)> = (0..5)
+        .map(|s| ((0..100).map(|i| (i * 3 + s) % 400).collect(), (0..100).map(|i| (i * 2 + s) % 300).collect()))
+        .collect();
     let sa = Tensor::from_slice(&subsets.iter().flat_map(|p| p.0.clone()).collect::<Vec<_>>()).view([5, 100]);
     let sb = Tensor::from_slice(&subsets.iter().flat_map(|p| p.1.clone()).collect::<Vec<_>>()).view([5, 100]);
     let input = tmp.path("in.safetensors");

@@ -63,16 +63,21 @@ fn bad_weight_files_are_named() {
     });
     Tensor::write_safetensors(&list, &path).unwrap();
     let e = InceptionV3::load(&path, Device::Cpu).err().expect("a mis-shaped tensor must be an error").to_string();
-    assert!(e.contains(&format!("'{bad}'")) && e.contains("[192, 1280, 1, 1]") && e.contains("[192, 2048, 1, 1]"), "{e}");
+    assert!(
+        e.contains(&format!("'{bad}'")) && e.contains("[192, 1280, 1, 1]") && e.contains("[192, 2048, 1, 1]"),
+        "{e}"
+    );
 
     let missing = "blocks.2.5.branch7x7dbl_4.bn.running_var";
     let list = with(&|l| l.retain(|(k, _)| k != missing));
-    let e = InceptionV3::from_weights(Weights::from_tensors(Path::new("w"), list, Device::Cpu)).err().unwrap().to_string();
+    let e =
+        InceptionV3::from_weights(Weights::from_tensors(Path::new("w"), list, Device::Cpu)).err().unwrap().to_string();
     assert!(e.contains(&format!("'{missing}' is missing")) && e.contains("[160]"), "{e}");
 
     // A torchvision Inception3 state dict has the classifier: not this network's file.
     let list = with(&|l| l.push(("fc.weight".into(), Tensor::zeros([1008, 2048], (Kind::Float, Device::Cpu)))));
-    let e = InceptionV3::from_weights(Weights::from_tensors(Path::new("w"), list, Device::Cpu)).err().unwrap().to_string();
+    let e =
+        InceptionV3::from_weights(Weights::from_tensors(Path::new("w"), list, Device::Cpu)).err().unwrap().to_string();
     assert!(e.contains("unexpected tensor 'fc.weight'"), "{e}");
 
     InceptionV3::from_weights(Weights::from_tensors(Path::new("w"), with(&|_| {}), Device::Cpu)).unwrap();

@@ -47,7 +47,8 @@ fn matches_the_lpips_package() {
             assert!(got_heads[k].equal(want), "{name}: converted {k} differs from the package's");
         }
 
-        let lpips = Lpips::load(net, &dir.path(&format!("{name}-backbone.safetensors")), &converted, Device::Cpu).unwrap();
+        let lpips =
+            Lpips::load(net, &dir.path(&format!("{name}-backbone.safetensors")), &converted, Device::Cpu).unwrap();
         let case = read_tensors(&dir.path(&format!("{name}-case.safetensors")));
         for size in SIZES {
             let x = case[&format!("x.{size}")].set_requires_grad(true);
@@ -92,7 +93,11 @@ fn a_misshaped_file_names_the_file_the_tensor_and_both_shapes() {
         tensors.push((format!("{name}.weight"), zeros(&shape)));
         tensors.push((format!("{name}.bias"), zeros(&shape[..1])));
     }
-    let mut head_tensors: Vec<_> = [64, 192, 384, 256, 256].iter().enumerate().map(|(i, &c)| (format!("lin{i}.model.1.weight"), zeros(&[1, c, 1, 1]))).collect();
+    let mut head_tensors: Vec<_> = [64, 192, 384, 256, 256]
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| (format!("lin{i}.model.1.weight"), zeros(&[1, c, 1, 1])))
+        .collect();
     Tensor::write_safetensors(&head_tensors, &heads).unwrap();
     Tensor::write_safetensors(&tensors, &backbone).unwrap();
     Lpips::load(LpipsNet::Alex, &backbone, &heads, Device::Cpu).unwrap();
@@ -101,7 +106,13 @@ fn a_misshaped_file_names_the_file_the_tensor_and_both_shapes() {
     tensors[2].1 = zeros(&[192, 64, 3, 3]);
     Tensor::write_safetensors(&tensors, &backbone).unwrap();
     let e = Lpips::load(LpipsNet::Alex, &backbone, &heads, Device::Cpu).unwrap_err().to_string();
-    assert!(e.contains("alex-backbone.safetensors") && e.contains("'features.3.weight'") && e.contains("[192, 64, 3, 3]") && e.contains("[192, 64, 5, 5]"), "{e}");
+    assert!(
+        e.contains("alex-backbone.safetensors")
+            && e.contains("'features.3.weight'")
+            && e.contains("[192, 64, 3, 3]")
+            && e.contains("[192, 64, 5, 5]"),
+        "{e}"
+    );
 
     // A VGG-sized head.
     tensors[2].1 = zeros(&[192, 64, 5, 5]);
@@ -109,5 +120,11 @@ fn a_misshaped_file_names_the_file_the_tensor_and_both_shapes() {
     head_tensors[1].1 = zeros(&[1, 128, 1, 1]);
     Tensor::write_safetensors(&head_tensors, &heads).unwrap();
     let e = Lpips::load(LpipsNet::Alex, &backbone, &heads, Device::Cpu).unwrap_err().to_string();
-    assert!(e.contains("alex-heads.safetensors") && e.contains("'lin1.model.1.weight'") && e.contains("[1, 128, 1, 1]") && e.contains("[1, 192, 1, 1]"), "{e}");
+    assert!(
+        e.contains("alex-heads.safetensors")
+            && e.contains("'lin1.model.1.weight'")
+            && e.contains("[1, 128, 1, 1]")
+            && e.contains("[1, 192, 1, 1]"),
+        "{e}"
+    );
 }

@@ -19,7 +19,8 @@ struct Case {
 
 fn case() -> Case {
     let path = repo_root().join("models/chairs-tiny/generator.safetensors");
-    let loaded = load_generator(&path, Device::Cpu, Kind::Float).unwrap_or_else(|e| panic!("the shipped model is needed: {e}"));
+    let loaded =
+        load_generator(&path, Device::Cpu, Kind::Float).unwrap_or_else(|e| panic!("the shipped model is needed: {e}"));
     let cam = loaded.header.camera.clone().unwrap();
     let poses = Poses::from_angles(&[(cam.v_mean, 0.4), (cam.v_mean - 0.2, 2.0)], Kind::Float, Device::Cpu);
     let rays = Rays::from_poses(&poses, 24, cam.fov_deg);
@@ -56,7 +57,12 @@ fn staged_shading_agrees_with_the_reference() {
     let side = r.shape_side(&lat.shape, &c.rays, &noise, t).unwrap();
     println!("density-first at {t}: {} of {} samples shaded", side.kept, side.evaluated);
     // On this model about 40 % of the samples weigh less than 1e-3.
-    assert!(side.kept * 10 < side.evaluated * 9, "only {} of {} samples skipped", side.evaluated - side.kept, side.evaluated);
+    assert!(
+        side.kept * 10 < side.evaluated * 9,
+        "only {} of {} samples skipped",
+        side.evaluated - side.kept,
+        side.evaluated
+    );
     let bound = 24.0 * t * (1.0 + 2.0 * rc.widen_eps);
     assert_close("density-first pixel", &r.shade(&side, &lat.appearance).unwrap(), &reference.pixel, bound, 0.0);
 
@@ -80,7 +86,13 @@ fn render_image_takes_the_density_first_option() {
     let u = Tensor::rand([2, 20 * 20, 12], (Kind::Float, Device::Cpu));
     let render = |t: f64| {
         // Small chunks: the staged path must join them as the reference path does.
-        let rc = RenderConfig { num_steps: 12, jitter: false, chunk_points: 2000, shade_min_weight: t, ..Default::default() };
+        let rc = RenderConfig {
+            num_steps: 12,
+            jitter: false,
+            chunk_points: 2000,
+            shade_min_weight: t,
+            ..Default::default()
+        };
         let r = Renderer::new(&c.loaded.generator, &cam, &rc).unwrap();
         r.render_image(&lat, &poses, 20, &Noise { jitter: None, importance: Some(u.shallow_clone()) }).unwrap()
     };

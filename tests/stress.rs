@@ -7,16 +7,14 @@ mod common;
 use gdrf_core::camera::{cam2world_rotation, pixel_directions, Poses, Rays};
 use gdrf_core::disc::Discriminator;
 use gdrf_core::field::generator::Generator;
-use gdrf_core::loss::deform_reg::{
-    density_gradient, normal_distance, regularisers, RegConfig, RegSamples, RegVariant,
-};
+use gdrf_core::loss::deform_reg::{density_gradient, normal_distance, regularisers, RegConfig, RegSamples, RegVariant};
 use gdrf_core::loss::{gan, LossConfig, Schedule};
-use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::nn::film::FilmLayer;
 use gdrf_core::nn::siren::SineLayer;
 use gdrf_core::nn::WeightInit;
 use gdrf_core::render::samplers::{importance_depths, sample_pdf};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
+use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::{CameraConfig, GeneratorConfig, Latents, RenderConfig};
 use std::f64::consts::PI;
 use tch::{nn, Device, Kind, Tensor};
@@ -87,7 +85,12 @@ fn integrator_survives_extreme_densities() {
         assert!((c.depth.double_value(&[2, 0]) - 1.4).abs() < 1e-6, "empty ray depth is the far end");
         assert!((c.depth.double_value(&[3, 0]) - 0.6).abs() < 1e-6, "opaque first sample");
         let (gs, gc) = {
-            let g = Tensor::run_backward(&[(c.pixel.sum(Kind::Float) + c.depth.sum(Kind::Float))], &[&sigma, &rgb], false, false);
+            let g = Tensor::run_backward(
+                &[(c.pixel.sum(Kind::Float) + c.depth.sum(Kind::Float))],
+                &[&sigma, &rgb],
+                false,
+                false,
+            );
             (g[0].shallow_clone(), g[1].shallow_clone())
         };
         assert!(finite(&gs) && finite(&gc), "non-finite gradients with {o:?}");
@@ -125,7 +128,11 @@ fn renderer_merges_into_sorted_samples_at_every_pose() {
     let r = Renderer::new(&g, &cam, &cfg).unwrap();
     let z = Tensor::randn([6, 8], (Kind::Float, CPU));
     let lat = g.latents(&z, &z, None);
-    let poses = Poses::from_angles(&[(0.0, 0.0), (PI, 1.0), (1.0, PI), (1.0, -PI), (1e-9, -PI), (PI - 1e-9, 2.0)], Kind::Float, CPU);
+    let poses = Poses::from_angles(
+        &[(0.0, 0.0), (PI, 1.0), (1.0, PI), (1.0, -PI), (1e-9, -PI), (PI - 1e-9, 2.0)],
+        Kind::Float,
+        CPU,
+    );
     let rays = Rays::from_poses(&poses, 6, cam.fov_deg);
     let out = tch::no_grad(|| r.render_rays(&lat, &rays, &Noise::default())).unwrap();
     assert!(finite(&out.pixel) && finite(&out.depth) && finite(&out.z));
@@ -136,7 +143,8 @@ fn renderer_merges_into_sorted_samples_at_every_pose() {
 #[test]
 fn camera_poles_yaw_wrap_and_extreme_fov() {
     for kind in [Kind::Float, Kind::Double] {
-        let poses = Poses::from_angles(&[(0.0, 0.0), (PI, 0.0), (0.0, PI), (PI, -PI), (1.0, PI), (1.0, -PI)], kind, CPU);
+        let poses =
+            Poses::from_angles(&[(0.0, 0.0), (PI, 0.0), (0.0, PI), (PI, -PI), (1.0, PI), (1.0, -PI)], kind, CPU);
         let r = cam2world_rotation(&poses);
         assert!(finite(&r));
         // yaw ±π is one camera.
@@ -284,7 +292,8 @@ fn float32_against_float64() {
         let at = Schedule { step: 0, alpha: 1.0 };
         let lc = LossConfig::default();
         let gl = generator_pass(&r, d, &fake, Some(&reg_rays), at, &lc).unwrap();
-        let dl = discriminator_pass(&r, d, &real.to_kind(kind), Some(&real_pose.to_kind(kind)), &fake, at, &lc).unwrap();
+        let dl =
+            discriminator_pass(&r, d, &real.to_kind(kind), Some(&real_pose.to_kind(kind)), &fake, at, &lc).unwrap();
         let mut terms = gl.terms;
         terms.extend(dl.terms);
         results.push((img.rgb, img.depth, terms));
@@ -347,7 +356,13 @@ fn regularisers_pass_a_finite_difference_gradient_check() {
     let near = (Tensor::rand([1, 6, 3], (Kind::Double, CPU)) - 0.5) * 0.8;
     let rest = (Tensor::rand([1, 6, 3], (Kind::Double, CPU)) - 0.5) * 0.8;
     let samples = RegSamples { near: near.shallow_clone(), rest: Some(rest) };
-    let names = ["deform.film.0.weight", "deform.film.3.bias", "deform.head.weight", "shape_mapping.3.weight", "template.trunk.1.weight"];
+    let names = [
+        "deform.film.0.weight",
+        "deform.film.3.bias",
+        "deform.head.weight",
+        "shape_mapping.3.weight",
+        "template.trunk.1.weight",
+    ];
     let terms = |sel: fn(&gdrf_core::loss::deform_reg::RegTerms) -> &Tensor, variant| {
         let shape = g.shape_from_z(&z, None);
         let t = regularisers(&g, &shape, &samples, variant);

@@ -102,7 +102,7 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
     }
     let swap = image::open(run_dir.join(run::SAMPLES).join("latest-swap.png")).unwrap();
     assert_eq!((swap.width(), swap.height()), (32, 32)); // 2 × 2 at the 16² stage
-    // The export and the training checkpoint both load as the EMA generator.
+                                                         // The export and the training checkpoint both load as the EMA generator.
     let exported = load_generator(&run_dir.join(run::GENERATOR), Device::Cpu, Kind::Float).unwrap();
     let from_ckpt = load_generator(&run::latest_checkpoint(&run_dir).unwrap().1, Device::Cpu, Kind::Float).unwrap();
     assert!(same_params(&params(&exported.vs), &params(&t.evs)));
@@ -136,7 +136,8 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
     assert!(same_params(&params(&a.evs), &params(&b.evs)));
     assert!(same_params(&params(&a.dvs), &params(&b.dvs)));
     // The resumed run's metrics hold each step once.
-    let steps: Vec<i64> = run::read_metrics(&dir.path("b")).unwrap().iter().map(|m| m["step"].as_i64().unwrap()).collect();
+    let steps: Vec<i64> =
+        run::read_metrics(&dir.path("b")).unwrap().iter().map(|m| m["step"].as_i64().unwrap()).collect();
     assert_eq!(steps, [0, 1, 2, 3, 4, 5]);
 }
 
@@ -163,7 +164,8 @@ fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
     let after = reports.last().unwrap();
     assert!(!after.g_skipped, "the replay runs clean");
     assert_eq!(after.lr_g, 0.5 * 3e-4);
-    let events: Vec<_> = run::read_metrics(&dir.path("run")).unwrap().into_iter().filter(|m| m["event"] == "rollback").collect();
+    let events: Vec<_> =
+        run::read_metrics(&dir.path("run")).unwrap().into_iter().filter(|m| m["event"] == "rollback").collect();
     assert_eq!(events.len(), 1);
     assert_eq!(events[0]["lr_scale"].as_f64(), Some(0.5));
 }
@@ -248,7 +250,10 @@ fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
         checked += 1;
     }
     assert!(checked > 20);
-    assert!(patched.dvs.trainable_variables().iter().all(|p| !p.grad().defined()), "D gets no gradient from the G step");
+    assert!(
+        patched.dvs.trainable_variables().iter().all(|p| !p.grad().defined()),
+        "D gets no gradient from the G step"
+    );
 }
 
 #[test]

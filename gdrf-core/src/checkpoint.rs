@@ -114,7 +114,9 @@ pub fn tensors_to_bytes(tensors: &[(String, Tensor)], key: &str, json: &str) -> 
     let mut data = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
         if !is_finite(t) {
-            return Err(Error::Invalid(format!("tensor '{name}' holds NaN or infinite values; refusing to write a checkpoint")));
+            return Err(Error::Invalid(format!(
+                "tensor '{name}' holds NaN or infinite values; refusing to write a checkpoint"
+            )));
         }
         let t = t.detach().to_device(Device::Cpu).contiguous();
         let mut buf = vec![0u8; t.numel() * t.kind().elt_size_in_bytes()];
@@ -165,8 +167,7 @@ pub fn load_tensors_with(path: &Path, key: &str) -> Result<(String, BTreeMap<Str
     let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
     let st = SafeTensors::deserialize(&bytes).map_err(|e| {
         not(match e {
-            safetensors::SafeTensorError::MetadataIncompleteBuffer
-            | safetensors::SafeTensorError::InvalidOffset(_) => {
+            safetensors::SafeTensorError::MetadataIncompleteBuffer | safetensors::SafeTensorError::InvalidOffset(_) => {
                 format!("the file is truncated or corrupt ({e}); it holds {} bytes", bytes.len())
             }
             _ => format!("not a safetensors file ({e})"),

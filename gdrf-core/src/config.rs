@@ -133,10 +133,7 @@ impl CameraConfig {
     }
     pub fn validate(&self) -> Result<()> {
         if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
-            return Err(Error::Config(format!(
-                "camera.fov_deg is {}, expected a value in (0, 180)",
-                self.fov_deg
-            )));
+            return Err(Error::Config(format!("camera.fov_deg is {}, expected a value in (0, 180)", self.fov_deg)));
         }
         if !(self.ray_start >= 0.0 && self.ray_end > self.ray_start && self.ray_end.is_finite()) {
             return Err(Error::Config(format!(
@@ -208,7 +205,8 @@ impl RenderConfig {
         }
         if self.last_back && self.white_back {
             return Err(Error::Config(
-                "render.last_back and render.white_back both fill the leftover transmittance; enable at most one".into(),
+                "render.last_back and render.white_back both fill the leftover transmittance; enable at most one"
+                    .into(),
             ));
         }
         if self.chunk_points == 0 {

@@ -15,9 +15,7 @@ pub fn select(request: &str) -> Result<Device> {
     if let Device::Cuda(i) = device {
         let n = tch::Cuda::device_count() as usize;
         if i >= n {
-            return Err(Error::Invalid(format!(
-                "device '{request}': libtorch sees {n} CUDA device(s)"
-            )));
+            return Err(Error::Invalid(format!("device '{request}': libtorch sees {n} CUDA device(s)")));
         }
     }
     Ok(device)
@@ -30,11 +28,7 @@ fn parse(request: &str) -> Result<Device> {
         "cuda" | "gpu" => Device::Cuda(0),
         other => match other.strip_prefix("cuda:").map(str::parse::<usize>) {
             Some(Ok(i)) => Device::Cuda(i),
-            _ => {
-                return Err(Error::Invalid(format!(
-                    "device '{request}': expected auto, cpu, cuda or cuda:N"
-                )))
-            }
+            _ => return Err(Error::Invalid(format!("device '{request}': expected auto, cpu, cuda or cuda:N"))),
         },
     })
 }

@@ -268,7 +268,10 @@ mod tests {
         let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
         let o = d.forward(&Tensor::rand([3, 3, 32, 32], (Kind::Float, Device::Cpu)), 0.3).unwrap();
         assert_eq!(o.pose.size(), [3, 2]);
-        let e = Discriminator::with_config(&(&vs.root() / "x"), &DiscConfig { channels: vec![4; 8], ..Default::default() }).unwrap_err().to_string();
+        let e =
+            Discriminator::with_config(&(&vs.root() / "x"), &DiscConfig { channels: vec![4; 8], ..Default::default() })
+                .unwrap_err()
+                .to_string();
         assert!(e.contains("discriminator.channels"), "{e}");
     }
 
@@ -276,8 +279,15 @@ mod tests {
     fn minibatch_std_sees_the_spread_of_each_group() {
         let opts = (Kind::Double, Device::Cpu);
         // Two groups of two (group 2, batch 4): images 0 and 2 form one group, 1 and 3 the other.
-        let x = Tensor::cat(&[Tensor::zeros([1, 2, 2, 2], opts), Tensor::ones([1, 2, 2, 2], opts),
-            Tensor::full([1, 2, 2, 2], 2.0, opts), Tensor::ones([1, 2, 2, 2], opts)], 0);
+        let x = Tensor::cat(
+            &[
+                Tensor::zeros([1, 2, 2, 2], opts),
+                Tensor::ones([1, 2, 2, 2], opts),
+                Tensor::full([1, 2, 2, 2], 2.0, opts),
+                Tensor::ones([1, 2, 2, 2], opts),
+            ],
+            0,
+        );
         let y = minibatch_std(&x, 2);
         assert_eq!(y.size(), [4, 3, 2, 2]);
         let ch: Vec<f64> = Vec::try_from(y.select(1, 2).mean_dim([1i64, 2].as_slice(), false, Kind::Double)).unwrap();
@@ -293,7 +303,10 @@ mod tests {
         let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], minibatch_std_group: 4 };
         let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
         assert_eq!(d.head.weight.size()[1], 65);
-        assert_eq!(d.forward(&Tensor::rand([6, 3, 32, 32], (Kind::Float, Device::Cpu)), 1.0).unwrap().logit.size(), [6, 1]);
+        assert_eq!(
+            d.forward(&Tensor::rand([6, 3, 32, 32], (Kind::Float, Device::Cpu)), 1.0).unwrap().logit.size(),
+            [6, 1]
+        );
     }
 
     #[test]

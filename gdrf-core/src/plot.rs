@@ -139,8 +139,7 @@ fn outline(img: &mut RgbImage, r: Rect, c: Rgb<u8>) {
 /// A `size`×`size` square at (x, y), clipped to `clip`.
 fn dot(img: &mut RgbImage, x: i64, y: i64, size: i64, c: Rgb<u8>, clip: Rect) {
     let (x0, y0) = ((x - (size - 1) / 2).max(clip.l), (y - (size - 1) / 2).max(clip.t));
-    let (x1, y1) =
-        ((x - (size - 1) / 2 + size - 1).min(clip.r), (y - (size - 1) / 2 + size - 1).min(clip.b));
+    let (x1, y1) = ((x - (size - 1) / 2 + size - 1).min(clip.r), (y - (size - 1) / 2 + size - 1).min(clip.b));
     fill(img, x0, y0, x1 - x0 + 1, y1 - y0 + 1, c);
 }
 
@@ -206,7 +205,13 @@ fn ticks_with(lo: f64, hi: f64, mantissas: &[f64], min_exp: i32) -> Vec<f64> {
     let start = (((hi - lo) / TICKS as f64).log10().floor() as i32 - 1).max(min_exp);
     for e in start..start + 40 {
         for &m in mantissas {
-            let scale = |i: f64| if e < 0 { i * m / 10f64.powi(-e) } else { i * m * 10f64.powi(e) };
+            let scale = |i: f64| {
+                if e < 0 {
+                    i * m / 10f64.powi(-e)
+                } else {
+                    i * m * 10f64.powi(e)
+                }
+            };
             let step = scale(1.0);
             let (i0, i1) = ((lo / step - 1e-9).ceil(), (hi / step + 1e-9).floor());
             if i1 - i0 + 1.0 <= TICKS as f64 {
@@ -281,10 +286,7 @@ impl Axes {
         let a = self.area;
         let fx = (x - self.x.0) / (self.x.1 - self.x.0) * (a.r - a.l) as f64;
         let fy = (y - self.y.0) / (self.y.1 - self.y.0) * (a.b - a.t) as f64;
-        (
-            (a.l + fx.round() as i64).clamp(a.l - 1, a.r + 1),
-            (a.b - fy.round() as i64).clamp(a.t - 1, a.b + 1),
-        )
+        ((a.l + fx.round() as i64).clamp(a.l - 1, a.r + 1), (a.b - fy.round() as i64).clamp(a.t - 1, a.b + 1))
     }
 }
 
@@ -303,10 +305,8 @@ fn layout(p: &Panel, ox: i64, oy: i64, w: i64, h: i64) -> Layout {
         p.series.iter().flat_map(|s| s.points.iter()).filter_map(|&q| valid(q, p.log_y)).collect();
     let x = data_range(pts.iter().map(|q| q.0), 0.0, false);
     let y = data_range(pts.iter().map(|q| q.1), 0.05, p.log_y);
-    let (xt, yt) =
-        (nice_ticks(x.0, x.1), if p.log_y { log_ticks(y.0, y.1) } else { nice_ticks(y.0, y.1) });
-    let ylabels: Vec<String> =
-        yt.iter().map(|&t| fmt_num(if p.log_y { 10f64.powf(t) } else { t })).collect();
+    let (xt, yt) = (nice_ticks(x.0, x.1), if p.log_y { log_ticks(y.0, y.1) } else { nice_ticks(y.0, y.1) });
+    let ylabels: Vec<String> = yt.iter().map(|&t| fmt_num(if p.log_y { 10f64.powf(t) } else { t })).collect();
     let gutter = ylabels.iter().map(|s| text_width(s, SCALE)).max().unwrap_or(0).max(16) + 8;
     let (l, t) = (ox + gutter, oy + 7 * TITLE_SCALE as i64 + 12);
     let (r, b) = ((ox + w - 12).max(l + 1), (oy + h - 7 * SCALE as i64 - 8).max(t + 1));
@@ -318,22 +318,14 @@ fn draw_panel(img: &mut RgbImage, p: &Panel, ox: i64, oy: i64, w: i64, h: i64) {
     let lay = layout(p, ox, oy, w, h);
     let (ax, a) = (&lay.axes, lay.axes.area);
     let title = fit(&p.title, w - 8, TITLE_SCALE);
-    draw_text(
-        img,
-        ox + (w - text_width(&title, TITLE_SCALE)) / 2,
-        oy + 5,
-        &title,
-        INK,
-        TITLE_SCALE,
-    );
+    draw_text(img, ox + (w - text_width(&title, TITLE_SCALE)) / 2, oy + 5, &title, INK, TITLE_SCALE);
     let ch = 7 * SCALE as i64;
     for &t in &lay.xt {
         let (x, _) = ax.map((t, ax.y.0));
         fill(img, x, a.t, 1, a.b - a.t, GRID);
         fill(img, x, a.b, 1, 4, FRAME);
         let s = fmt_num(t);
-        let lx =
-            (x - text_width(&s, SCALE) / 2).clamp(ox, (ox + w - text_width(&s, SCALE)).max(ox));
+        let lx = (x - text_width(&s, SCALE) / 2).clamp(ox, (ox + w - text_width(&s, SCALE)).max(ox));
         draw_text(img, lx, a.b + 5, &s, INK, SCALE);
     }
     for (&t, s) in lay.yt.iter().zip(&lay.ylabels) {
@@ -370,8 +362,7 @@ fn draw_panel(img: &mut RgbImage, p: &Panel, ox: i64, oy: i64, w: i64, h: i64) {
     // Legend last, on a white box, so curves never hide the names.
     let row = 10 * SCALE as i64;
     let n = (p.series.len() as i64).min((a.b - a.t - 6) / row).max(0) as usize;
-    let names: Vec<String> =
-        p.series.iter().take(n).map(|s| fit(&s.name, (a.r - a.l) / 2, SCALE)).collect();
+    let names: Vec<String> = p.series.iter().take(n).map(|s| fit(&s.name, (a.r - a.l) / 2, SCALE)).collect();
     if n > 0 {
         let lw = names.iter().map(|s| text_width(s, SCALE)).max().unwrap_or(0) + 26;
         let (lx, ly) = (a.r - lw - 3, a.t + 3);
@@ -396,8 +387,7 @@ pub fn draw_panels(panels: &[Panel], cols: usize, panel_w: u32, panel_h: u32) ->
     }
     let cols = cols.clamp(1, panels.len());
     let rows = panels.len().div_ceil(cols);
-    let mut img =
-        RgbImage::from_pixel(pw.saturating_mul(cols as u32), ph.saturating_mul(rows as u32), WHITE);
+    let mut img = RgbImage::from_pixel(pw.saturating_mul(cols as u32), ph.saturating_mul(rows as u32), WHITE);
     for (i, p) in panels.iter().enumerate() {
         let (ox, oy) = ((i % cols) as i64 * pw as i64, (i / cols) as i64 * ph as i64);
         draw_panel(&mut img, p, ox, oy, pw as i64, ph as i64);
@@ -421,10 +411,7 @@ pub fn smooth(points: &[(f64, f64)], k: usize) -> Vec<(f64, f64)> {
                 return (x, y);
             }
             let win = &points[i.saturating_sub(before)..(i + after + 1).min(points.len())];
-            let (sum, n) = win
-                .iter()
-                .filter(|q| q.1.is_finite())
-                .fold((0.0, 0.0), |(s, n), q| (s + q.1, n + 1.0));
+            let (sum, n) = win.iter().filter(|q| q.1.is_finite()).fold((0.0, 0.0), |(s, n), q| (s + q.1, n + 1.0));
             (x, sum / n)
         })
         .collect()
@@ -462,18 +449,15 @@ mod tests {
         for i in 0..=16 {
             let (x, y) = lay.axes.map((i as f64 * 0.5, i as f64 * 0.5));
             assert!((a.l..=a.r).contains(&x) && (a.t..=a.b).contains(&y));
-            let hit = (-1..=1).any(|dx| {
-                (-1..=1).any(|dy| *img.get_pixel((x + dx) as u32, (y + dy) as u32) == PALETTE[0])
-            });
+            let hit =
+                (-1..=1).any(|dx| (-1..=1).any(|dy| *img.get_pixel((x + dx) as u32, (y + dy) as u32) == PALETTE[0]));
             assert!(hit, "no curve pixel near ({x}, {y})");
         }
         assert_eq!(*img.get_pixel(a.l as u32 + 3, a.t as u32 + 3), WHITE);
         assert_eq!(*img.get_pixel(a.r as u32 - 3, a.b as u32 - 3), WHITE);
         // The title and tick labels put ink outside the plot area.
         assert!((0..a.t as u32).any(|y| (0..360).any(|x| *img.get_pixel(x, y) == INK)));
-        assert!(
-            (0..a.l as u32).any(|x| (a.t as u32..a.b as u32).any(|y| *img.get_pixel(x, y) == INK))
-        );
+        assert!((0..a.l as u32).any(|x| (a.t as u32..a.b as u32).any(|y| *img.get_pixel(x, y) == INK)));
     }
 
     #[test]
@@ -490,23 +474,11 @@ mod tests {
             panel(vec![series("empty", vec![])], true),
             panel(vec![series("one", vec![(3.0, 7.0)])], false),
             panel(
-                vec![
-                    series("flat", vec![(0.0, 2.0), (5.0, 2.0)]),
-                    series("zero", vec![(0.0, 0.0), (1.0, 0.0)]),
-                ],
+                vec![series("flat", vec![(0.0, 2.0), (5.0, 2.0)]), series("zero", vec![(0.0, 0.0), (1.0, 0.0)])],
                 false,
             ),
-            panel(
-                vec![series(
-                    "bad",
-                    vec![(0.0, f64::INFINITY), (f64::NAN, 1.0), (2.0, -f64::INFINITY)],
-                )],
-                false,
-            ),
-            panel(
-                vec![series("log", vec![(0.0, -1.0), (1.0, 0.0), (2.0, 1e-3), (3.0, 0.1)])],
-                true,
-            ),
+            panel(vec![series("bad", vec![(0.0, f64::INFINITY), (f64::NAN, 1.0), (2.0, -f64::INFINITY)])], false),
+            panel(vec![series("log", vec![(0.0, -1.0), (1.0, 0.0), (2.0, 1e-3), (3.0, 0.1)])], true),
             panel(vec![series("neg", vec![(0.0, -1.0), (1.0, 0.0)])], true),
             panel(vec![series("huge", vec![(-1e308, -1e308), (1e308, 1e308)])], false),
         ];

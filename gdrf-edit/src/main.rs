@@ -151,7 +151,8 @@ fn render(a: RenderArgs) -> Result<()> {
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
-    renderer.field = FieldOptions { no_deformation: a.no_deformation, no_correction: a.no_correction, ..Default::default() };
+    renderer.field =
+        FieldOptions { no_deformation: a.no_deformation, no_correction: a.no_correction, ..Default::default() };
 
     let latent = generator.cfg.latent_dim as i64;
     let code = |s: i64| seeded_randn(&[1, latent], s).to_device(dev);
@@ -166,9 +167,8 @@ fn render(a: RenderArgs) -> Result<()> {
     let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
 
     let pitch = a.pitch.map(f64::to_radians).unwrap_or(camera.v_mean);
-    let views: Vec<(f64, f64)> = (0..a.views)
-        .map(|k| (pitch, (a.yaw + 360.0 * k as f64 / a.views as f64).to_radians()))
-        .collect();
+    let views: Vec<(f64, f64)> =
+        (0..a.views).map(|k| (pitch, (a.yaw + 360.0 * k as f64 / a.views as f64).to_radians())).collect();
     let total = a.seeds.len() * a.views;
     let bar = ProgressBar::new(total as u64).with_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} images, {elapsed} elapsed, eta {eta}")

@@ -149,7 +149,8 @@ fn train_probe(a: TrainProbeArgs) -> Result<()> {
     let pb = super::bar(n as usize, "probe inputs");
     let train_in = probe::probe_inputs(backbone, net.as_ref(), &train_x, 32, &mut |i| pb.set_position(i as u64))?;
     let done = train_x.size()[0];
-    let held_in = probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |i| pb.set_position((done + i) as u64))?;
+    let held_in =
+        probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |i| pb.set_position((done + i) as u64))?;
     pb.finish_and_clear();
     let prep = start.elapsed().as_secs_f64();
     let cfg = ProbeConfig { backbone, epochs: a.epochs, batch_size: a.batch_size, lr: a.lr, seed: a.seed };
@@ -188,12 +189,15 @@ fn run(a: RunArgs) -> Result<()> {
     let features = match a.features.as_str() {
         "efficientnet" => FeatureKind::Efficientnet,
         "inception" => FeatureKind::Inception(
-            a.weights.clone().context("--features inception needs --weights FILE (see scripts/export_inception_weights.py)")?,
+            a.weights
+                .clone()
+                .context("--features inception needs --weights FILE (see scripts/export_inception_weights.py)")?,
         ),
         other => bail!("--features {other}: expected efficientnet or inception"),
     };
     let out = a.out.clone().unwrap_or_else(|| {
-        let stem = generator.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "generator".into());
+        let stem =
+            generator.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "generator".into());
         generator.with_file_name(format!("{stem}-eval"))
     });
     let opts = EvalOptions {
@@ -216,6 +220,11 @@ fn run(a: RunArgs) -> Result<()> {
     pb.finish_and_clear();
     report::write(&out, &result)?;
     print!("{}", report::summary(&result));
-    println!("evaluated in {:.0} s; wrote {}/eval.json and {}/report.png", start.elapsed().as_secs_f64(), out.display(), out.display());
+    println!(
+        "evaluated in {:.0} s; wrote {}/eval.json and {}/report.png",
+        start.elapsed().as_secs_f64(),
+        out.display(),
+        out.display()
+    );
     Ok(())
 }

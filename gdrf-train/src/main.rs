@@ -186,7 +186,9 @@ fn main() {
         Some(Command::Plot(a)) => plot_cmd::plot(a),
         Some(Command::Eval(a)) => eval_cmd::eval(*a),
         None if cli.train.any() => train_cmd::train(cli.train),
-        None => Err(anyhow::anyhow!("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`")),
+        None => Err(anyhow::anyhow!(
+            "nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"
+        )),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -59,7 +59,8 @@ pub fn plot(a: PlotArgs) -> Result<()> {
             series: series
                 .iter()
                 .map(|(name, path)| {
-                    let pts: Vec<(f64, f64)> = records.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect();
+                    let pts: Vec<(f64, f64)> =
+                        records.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect();
                     let k = if title.starts_with("learning") { 1 } else { a.smooth };
                     Series { name: name.to_string(), points: smooth(&pts, k) }
                 })
@@ -69,11 +70,17 @@ pub fn plot(a: PlotArgs) -> Result<()> {
         .collect();
     let mut panels = panels;
     // The `[eval]` scores, each beside its real-data end.
-    for (title, key) in [("eval: frechet distance", "frechet"), ("eval: coverage tv", "coverage_tv"), ("eval: appearance follows j", "appearance_follows")] {
+    for (title, key) in [
+        ("eval: frechet distance", "frechet"),
+        ("eval: coverage tv", "coverage_tv"),
+        ("eval: appearance follows j", "appearance_follows"),
+    ] {
         if evals.is_empty() {
             break;
         }
-        let pts = |path: &str| evals.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect::<Vec<_>>();
+        let pts = |path: &str| {
+            evals.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect::<Vec<_>>()
+        };
         panels.push(Panel {
             title: title.to_string(),
             log_y: false,

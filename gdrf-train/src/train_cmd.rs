@@ -78,9 +78,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         Ok(cfg)
     };
     let mut trainer = match (&a.config, &a.resume) {
-        (Some(path), Some(dir)) => {
-            Trainer::resume_with(dir, load(path)?).with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?
-        }
+        (Some(path), Some(dir)) => Trainer::resume_with(dir, load(path)?)
+            .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
         (Some(path), None) => {
             let cfg = load(path)?;
             let run_dir = a.run_dir.clone().unwrap_or_else(|| default_run_dir(path));
@@ -102,7 +101,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
             Trainer::new(cfg, &run_dir)?
         }
         (None, Some(dir)) => {
-            let mut t = Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
+            let mut t =
+                Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
             if let Some(n) = a.threads {
                 t.cfg.threads = n;
             }
@@ -121,7 +121,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 eprintln!("\nsecond interrupt: exiting now, without a checkpoint of the step in progress");
                 std::process::exit(130);
             }
-            eprintln!("\ninterrupt: finishing the current step, then writing a checkpoint (Ctrl-C again to exit at once)");
+            eprintln!(
+                "\ninterrupt: finishing the current step, then writing a checkpoint (Ctrl-C again to exit at once)"
+            );
         })
         .context("installing the Ctrl-C/SIGTERM handler")?;
     }
@@ -173,12 +175,19 @@ pub fn train(a: TrainArgs) -> Result<()> {
             term("g_adv"),
             term("g_pose"),
             term("reg_normal"),
-            if p.skipped_steps > 0 { format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks) } else { String::new() }
+            if p.skipped_steps > 0 {
+                format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks)
+            } else {
+                String::new()
+            }
         );
         bar.set_prefix(format!("stage {}", r.stage));
         bar.set_position(p.step as u64);
         if let Some(to) = r.rolled_back_to {
-            bar.println(format!("step {}: non-finite steps in a row; rolled back to step {to} with lr × {}", r.step, p.lr_scale));
+            bar.println(format!(
+                "step {}: non-finite steps in a row; rolled back to step {to} with lr × {}",
+                r.step, p.lr_scale
+            ));
         }
         if a.quiet && r.step % cfg.schedule.log_interval == 0 {
             println!("step {} {msg}", r.step);
@@ -191,8 +200,12 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let dir = trainer.run_dir.display();
     match stopped {
         Stopped::Finished => println!("finished: {} steps", p.step),
-        Stopped::Limit => println!("stopped at step {} (session limit); continue with `gdrf-train --resume {dir}`", p.step),
-        Stopped::Interrupted => println!("interrupted at step {}; checkpoint written; continue with `gdrf-train --resume {dir}`", p.step),
+        Stopped::Limit => {
+            println!("stopped at step {} (session limit); continue with `gdrf-train --resume {dir}`", p.step)
+        }
+        Stopped::Interrupted => {
+            println!("interrupted at step {}; checkpoint written; continue with `gdrf-train --resume {dir}`", p.step)
+        }
     }
     println!(
         "checkpoint step {latest} in {dir}/{}/, EMA generator {dir}/{}, metrics {dir}/{} ({} steps skipped, {} rollbacks, {:.0} s training in all)",
@@ -204,7 +217,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         p.train_seconds
     );
     if cfg.schedule.sample_interval > 0 {
-        let shown: Vec<String> = samples::latest_previews(&trainer.run_dir).iter().map(|p| p.display().to_string()).collect();
+        let shown: Vec<String> =
+            samples::latest_previews(&trainer.run_dir).iter().map(|p| p.display().to_string()).collect();
         println!("previews: {}", shown.join(", "));
     }
     if stopped == Stopped::Interrupted {

@@ -13,9 +13,7 @@ pub fn repo_root() -> PathBuf {
 /// The project's Python (set up by scripts/setup.sh). Panics with instructions when it is
 /// missing or lacks torch: cross-checks never skip silently.
 pub fn python() -> PathBuf {
-    let py = std::env::var_os("GDRF_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join(".venv/bin/python"));
+    let py = std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo_root().join(".venv/bin/python"));
     let ok = Command::new(&py)
         .args(["-c", "import torch, safetensors, numpy; assert torch.__version__.startswith('2.11.0')"])
         .status()

@@ -41,8 +41,8 @@ pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
     if bytes.is_empty() {
         return Err(data_err("empty file (0 bytes)".into()));
     }
-    let format = image::guess_format(&bytes)
-        .map_err(|_| data_err("not a PNG or JPEG file (unrecognised signature)".into()))?;
+    let format =
+        image::guess_format(&bytes).map_err(|_| data_err("not a PNG or JPEG file (unrecognised signature)".into()))?;
     if !matches!(format, image::ImageFormat::Png | image::ImageFormat::Jpeg) {
         return Err(data_err(format!("{format:?} images are not supported, expected PNG or JPEG")));
     }
@@ -77,7 +77,9 @@ pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
 /// A JPEG is complete when an end-of-image marker (FF D9) follows its last
 /// start-of-scan marker (FF DA); trailing bytes after it are allowed.
 fn jpeg_is_complete(bytes: &[u8]) -> bool {
-    let Some(sos) = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]) else { return false };
+    let Some(sos) = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]) else {
+        return false;
+    };
     bytes[sos..].windows(2).any(|w| w == [0xFF, 0xD9])
 }
 

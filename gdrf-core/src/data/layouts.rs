@@ -62,7 +62,9 @@ impl std::str::FromStr for Layout {
         [Layout::Auto, Layout::Folder, Layout::CameraParam, Layout::Carla, Layout::Synth]
             .into_iter()
             .find(|l| l.name() == s || l.name().replace('_', "-") == s)
-            .ok_or_else(|| Error::Invalid(format!("unknown layout '{s}', expected auto, folder, camera_param, carla or synth")))
+            .ok_or_else(|| {
+                Error::Invalid(format!("unknown layout '{s}', expected auto, folder, camera_param, carla or synth"))
+            })
     }
 }
 
@@ -131,7 +133,10 @@ fn name_of(dir: &Path, file: &Path) -> String {
 
 pub fn list(dir: &Path, opts: &ListOptions) -> Result<Listing> {
     if !dir.is_dir() {
-        return Err(Error::Data { path: dir.to_path_buf(), reason: "not a folder (expected a folder of images)".into() });
+        return Err(Error::Data {
+            path: dir.to_path_buf(),
+            reason: "not a folder (expected a folder of images)".into(),
+        });
     }
     let layout = opts.layout.resolve(dir);
     let mut problems = Problems { skip_bad: opts.skip_bad, skipped: Vec::new() };
@@ -151,7 +156,9 @@ pub fn list(dir: &Path, opts: &ListOptions) -> Result<Listing> {
                 if opts.require_poses {
                     return Err(Error::Data {
                         path: dir.to_path_buf(),
-                        reason: format!("poses are required but there is no pose file (give one, or add {CAMERA_PARAM_FILE})"),
+                        reason: format!(
+                            "poses are required but there is no pose file (give one, or add {CAMERA_PARAM_FILE})"
+                        ),
                     });
                 }
                 listing.files = folder::list_images(dir)?;
@@ -182,7 +189,10 @@ pub fn list(dir: &Path, opts: &ListOptions) -> Result<Listing> {
         Layout::Auto => unreachable!("resolved above"),
     }
     if listing.files.is_empty() {
-        return Err(Error::Data { path: dir.to_path_buf(), reason: format!("no images found ({} layout)", layout.name()) });
+        return Err(Error::Data {
+            path: dir.to_path_buf(),
+            reason: format!("no images found ({} layout)", layout.name()),
+        });
     }
     listing.skipped = problems.skipped;
     Ok(listing)
@@ -219,14 +229,16 @@ fn list_with_pose_file(dir: &Path, pose_file: &Path, listing: &mut Listing, prob
 pub fn read_camera_param(path: &Path) -> Result<BTreeMap<String, [f64; 2]>> {
     let data_err = |reason: String| Error::Data { path: path.to_path_buf(), reason };
     let text = std::fs::read_to_string(path).map_err(|e| data_err(format!("cannot read the pose file: {e}")))?;
-    let map: BTreeMap<String, serde_json::Value> = serde_json::from_str(&text)
-        .map_err(|e| data_err(format!("not a pose file (expected {{\"image.png\": {{\"phi\": …, \"theta\": …}}}}): {e}")))?;
+    let map: BTreeMap<String, serde_json::Value> = serde_json::from_str(&text).map_err(|e| {
+        data_err(format!("not a pose file (expected {{\"image.png\": {{\"phi\": …, \"theta\": …}}}}): {e}"))
+    })?;
     let mut out = BTreeMap::new();
     for (name, v) in map {
         let angle = |k: &str| {
-            v.get(k).and_then(serde_json::Value::as_f64).filter(|x| x.is_finite()).ok_or_else(|| {
-                data_err(format!("entry '{name}' has no finite number '{k}'"))
-            })
+            v.get(k)
+                .and_then(serde_json::Value::as_f64)
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| data_err(format!("entry '{name}' has no finite number '{k}'")))
         };
         out.insert(name.clone(), [angle("phi")?, angle("theta")?]);
     }

@@ -226,7 +226,9 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
 
     let cached = cache_path.as_deref().and_then(|p| read_cache(p, &fingerprint, res));
     let (pixels, names, mut skipped, cache) = match cached {
-        Some((pixels, names, skipped)) => (pixels, names, skipped, CacheStatus::Hit(cache_path.clone().unwrap_or_default())),
+        Some((pixels, names, skipped)) => {
+            (pixels, names, skipped, CacheStatus::Hit(cache_path.clone().unwrap_or_default()))
+        }
         None => {
             let decoded = par_try_map(listing.files.len(), opts.threads, |i| {
                 let r = folder::load_image(&listing.files[i], res);
@@ -265,7 +267,8 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
     let poses = match &listing.poses {
         None => None,
         Some(all) => {
-            let by_name: HashMap<&str, [f64; 2]> = listing.names.iter().map(String::as_str).zip(all.iter().copied()).collect();
+            let by_name: HashMap<&str, [f64; 2]> =
+                listing.names.iter().map(String::as_str).zip(all.iter().copied()).collect();
             let mut flat = Vec::with_capacity(2 * n);
             for name in &names {
                 let p = by_name.get(name.as_str()).ok_or_else(|| Error::Data {
@@ -308,7 +311,8 @@ fn fingerprint(opts: &LoadOptions, listing: &layouts::Listing) -> String {
             eat(b"unreadable");
             continue;
         };
-        let mtime = meta.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map_or(0, |d| d.as_nanos());
+        let mtime =
+            meta.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map_or(0, |d| d.as_nanos());
         eat(&meta.len().to_le_bytes());
         eat(&mtime.to_le_bytes());
     }
@@ -341,8 +345,20 @@ fn read_cache(path: &Path, fingerprint: &str, res: usize) -> Option<(Vec<u8>, Ve
     (t.dtype() == Dtype::U8 && t.shape() == want).then(|| (t.data().to_vec(), header.names, header.skipped))
 }
 
-fn write_cache(path: &Path, fingerprint: &str, res: usize, pixels: &[u8], names: &[String], skipped: &[Skipped]) -> Result<()> {
-    let header = CacheHeader { fingerprint: fingerprint.into(), resolution: res, names: names.to_vec(), skipped: skipped.to_vec() };
+fn write_cache(
+    path: &Path,
+    fingerprint: &str,
+    res: usize,
+    pixels: &[u8],
+    names: &[String],
+    skipped: &[Skipped],
+) -> Result<()> {
+    let header = CacheHeader {
+        fingerprint: fingerprint.into(),
+        resolution: res,
+        names: names.to_vec(),
+        skipped: skipped.to_vec(),
+    };
     let json = serde_json::to_string(&header).map_err(|e| Error::Invalid(e.to_string()))?;
     let view = TensorView::new(Dtype::U8, vec![names.len(), 3, res, res], pixels)
         .map_err(|e| Error::Invalid(format!("cache tensor: {e}")))?;
@@ -432,7 +448,9 @@ impl DataConfig {
     /// dataset is there; an existing one generated with other options is an error
     /// (never overwritten silently).
     pub fn prepare(&self, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<Prepared> {
-        let Some(want) = &self.synth else { return Ok(Prepared::External) };
+        let Some(want) = &self.synth else {
+            return Ok(Prepared::External);
+        };
         if self.path.join(synth::METADATA_FILE).is_file() {
             let have = synth::Metadata::load(&self.path)?;
             if &have.options != want {
@@ -452,11 +470,19 @@ impl DataConfig {
 /// The option keys whose values differ, e.g. "count: 100 vs 200".
 fn option_diff(have: &synth::SynthOptions, want: &synth::SynthOptions) -> String {
     let (a, b) = (serde_json::to_value(have).unwrap_or_default(), serde_json::to_value(want).unwrap_or_default());
-    let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else { return String::new() };
+    let (Some(a), Some(b)) = (a.as_object(), b.as_object()) else {
+        return String::new();
+    };
     let keys: BTreeMap<&String, ()> = a.keys().chain(b.keys()).map(|k| (k, ())).collect();
     keys.into_keys()
         .filter(|k| a.get(*k) != b.get(*k))
-        .map(|k| format!("{k}: {} on disk vs {} wanted", a.get(k).unwrap_or(&serde_json::Value::Null), b.get(k).unwrap_or(&serde_json::Value::Null)))
+        .map(|k| {
+            format!(
+                "{k}: {} on disk vs {} wanted",
+                a.get(k).unwrap_or(&serde_json::Value::Null),
+                b.get(k).unwrap_or(&serde_json::Value::Null)
+            )
+        })
         .collect::<Vec<_>>()
         .join(", ")
 }
@@ -490,7 +516,8 @@ mod tests {
     fn par_try_map_keeps_order_and_reports_the_first_error() {
         let v = par_try_map(100, 3, |i| Ok(i * 2)).unwrap();
         assert_eq!(v, (0..100).map(|i| i * 2).collect::<Vec<_>>());
-        let e = par_try_map(100, 2, |i| if i == 7 { Err(Error::Invalid(format!("bad {i}"))) } else { Ok(i) }).unwrap_err();
+        let e =
+            par_try_map(100, 2, |i| if i == 7 { Err(Error::Invalid(format!("bad {i}"))) } else { Ok(i) }).unwrap_err();
         assert!(e.to_string().contains("bad 7"));
         assert!(par_try_map(0, 2, Ok).unwrap().is_empty());
     }

@@ -24,9 +24,7 @@ pub fn parse_matrix(bytes: &[u8]) -> std::result::Result<Matrix3x4, String> {
         2 | 3 if bytes.len() >= 12 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
         v => return Err(format!(".npy format version {v} is not supported")),
     };
-    let header = bytes
-        .get(start..start + header_len)
-        .ok_or("truncated .npy header")?;
+    let header = bytes.get(start..start + header_len).ok_or("truncated .npy header")?;
     let header = std::str::from_utf8(header).map_err(|_| "the .npy header is not text")?;
     let descr = dict_value(header, "descr").ok_or("the .npy header has no 'descr'")?;
     let fortran = dict_value(header, "fortran_order").ok_or("the .npy header has no 'fortran_order'")?;
@@ -57,7 +55,11 @@ pub fn parse_matrix(bytes: &[u8]) -> std::result::Result<Matrix3x4, String> {
     };
     let data = &bytes[start + header_len..];
     if data.len() != rows * 4 * width {
-        return Err(format!("data is {} bytes, expected {} for shape {shape} (truncated?)", data.len(), rows * 4 * width));
+        return Err(format!(
+            "data is {} bytes, expected {} for shape {shape} (truncated?)",
+            data.len(),
+            rows * 4 * width
+        ));
     }
     let value = |k: usize| -> f64 {
         let b = &data[k * width..(k + 1) * width];

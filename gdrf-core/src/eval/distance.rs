@@ -44,7 +44,10 @@ pub fn frechet_from_stats(mu1: &Tensor, cov1: &Tensor, mu2: &Tensor, cov2: &Tens
     let d = mu1.size()[0];
     for (name, t, want) in [("mu2", mu2, vec![d]), ("cov1", cov1, vec![d, d]), ("cov2", cov2, vec![d, d])] {
         if t.size() != want {
-            return Err(Error::Invalid(format!("Fréchet distance: {name} has shape {:?}, expected {want:?}", t.size())));
+            return Err(Error::Invalid(format!(
+                "Fréchet distance: {name} has shape {:?}, expected {want:?}",
+                t.size()
+            )));
         }
     }
     let [mu1, mu2, cov1, cov2] = [mu1, mu2, cov1, cov2].map(|t| t.to_kind(Kind::Double));
@@ -129,7 +132,9 @@ pub fn kernel_on_subsets(a: &Tensor, b: &Tensor, subsets: &[(Vec<i64>, Vec<i64>)
     let mut vals = Vec::with_capacity(subsets.len());
     for (ia, ib) in subsets {
         if ia.len() != ib.len() || ia.len() < 2 {
-            return Err(Error::Invalid("kernel distance: each subset pair needs two equal lists of ≥ 2 indices".into()));
+            return Err(Error::Invalid(
+                "kernel distance: each subset pair needs two equal lists of ≥ 2 indices".into(),
+            ));
         }
         let pick = |t: &Tensor, i: &[i64]| t.index_select(0, &Tensor::from_slice(i).to_device(t.device()));
         vals.push(mmd2_cubic(&pick(&a, ia), &pick(&b, ib)));

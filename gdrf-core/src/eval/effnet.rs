@@ -18,8 +18,15 @@ use std::path::Path;
 use tch::{Device, Kind, Tensor};
 
 /// Per stage: expand ratio, kernel, stride, output channels, repeats (B0's layout).
-const STAGES: [(i64, i64, i64, i64, usize); 7] =
-    [(1, 3, 1, 16, 1), (6, 3, 2, 24, 2), (6, 5, 2, 40, 2), (6, 3, 2, 80, 3), (6, 5, 1, 112, 3), (6, 5, 2, 192, 4), (6, 3, 1, 320, 1)];
+const STAGES: [(i64, i64, i64, i64, usize); 7] = [
+    (1, 3, 1, 16, 1),
+    (6, 3, 2, 24, 2),
+    (6, 5, 2, 40, 2),
+    (6, 3, 2, 80, 3),
+    (6, 5, 1, 112, 3),
+    (6, 5, 2, 192, 4),
+    (6, 3, 1, 320, 1),
+];
 const STEM: i64 = 32;
 /// Width of the pooled head feature.
 pub const FEATURE_DIM: i64 = 1280;
@@ -68,7 +75,17 @@ struct ConvBn {
 
 impl ConvBn {
     #[allow(clippy::too_many_arguments)]
-    fn load(w: &mut Weights, conv: &str, bn: &str, cin: i64, cout: i64, k: i64, stride: i64, groups: i64, act: bool) -> Result<Self> {
+    fn load(
+        w: &mut Weights,
+        conv: &str,
+        bn: &str,
+        cin: i64,
+        cout: i64,
+        k: i64,
+        stride: i64,
+        groups: i64,
+        act: bool,
+    ) -> Result<Self> {
         Ok(Self {
             conv: Conv2d::load(w, conv, cin, cout, [k, k], stride, [0, 0], groups, false)?,
             bn: BatchNorm::load(w, bn, cout, BN_EPS)?,
@@ -107,7 +124,17 @@ impl MbConv {
         };
         Ok(Self {
             expand,
-            depthwise: ConvBn::load(w, &format!("{p}._depthwise_conv"), &format!("{p}._bn1"), mid, mid, k, stride, mid, true)?,
+            depthwise: ConvBn::load(
+                w,
+                &format!("{p}._depthwise_conv"),
+                &format!("{p}._bn1"),
+                mid,
+                mid,
+                k,
+                stride,
+                mid,
+                true,
+            )?,
             project: ConvBn::load(w, &format!("{p}._project_conv"), &format!("{p}._bn2"), mid, cout, 1, 1, 1, false)?,
             skip: stride == 1 && cin == cout,
         })
@@ -185,10 +212,14 @@ impl EfficientNetLite0 {
     pub fn prepare(&self, img: &Tensor, size: i64) -> Result<Tensor> {
         let s = img.size();
         if s.len() != 4 || s[1] != 3 || s[2] < 1 || s[3] < 1 {
-            return Err(Error::Invalid(format!("EfficientNet-Lite0 expects (B, 3, H, W) images in [-1, 1], got shape {s:?}")));
+            return Err(Error::Invalid(format!(
+                "EfficientNet-Lite0 expects (B, 3, H, W) images in [-1, 1], got shape {s:?}"
+            )));
         }
         if !(16..=1024).contains(&size) {
-            return Err(Error::Invalid(format!("EfficientNet-Lite0 input size {size} is out of range, expected 16 to 1024")));
+            return Err(Error::Invalid(format!(
+                "EfficientNet-Lite0 input size {size} is out of range, expected 16 to 1024"
+            )));
         }
         let x = img.to_device(self.device).to_kind(Kind::Float);
         if s[2] == size && s[3] == size {
@@ -226,7 +257,12 @@ impl EfficientNetLite0 {
     /// `(N, 3, H, W)` in [−1, 1] at 224², in one pass (the distances and the probe share
     /// it), in batches of `batch`, without gradients, on the CPU; `progress(done)` after
     /// each batch.
-    pub fn pooled_and_last_tap(&self, images: &Tensor, batch: i64, progress: &mut dyn FnMut(i64)) -> Result<(Tensor, Tensor)> {
+    pub fn pooled_and_last_tap(
+        &self,
+        images: &Tensor,
+        batch: i64,
+        progress: &mut dyn FnMut(i64),
+    ) -> Result<(Tensor, Tensor)> {
         let n = images.size()[0];
         let (mut pooled, mut taps) = (Vec::new(), Vec::new());
         let mut i = 0;

@@ -29,7 +29,15 @@ struct BasicConv {
 }
 
 impl BasicConv {
-    fn load(w: &mut Weights, prefix: &str, cin: i64, cout: i64, k: [i64; 2], stride: i64, padding: [i64; 2]) -> Result<Self> {
+    fn load(
+        w: &mut Weights,
+        prefix: &str,
+        cin: i64,
+        cout: i64,
+        k: [i64; 2],
+        stride: i64,
+        padding: [i64; 2],
+    ) -> Result<Self> {
         Ok(Self {
             conv: Conv2d::load(w, &format!("{prefix}.conv"), cin, cout, k, stride, padding, 1, false)?,
             bn: BatchNorm::load(w, &format!("{prefix}.bn"), cout, BN_EPS)?,

@@ -46,9 +46,24 @@ const fn conv(index: usize, cin: i64, cout: i64, k: i64, stride: i64, padding: i
 const VGG16_SLICES: [&[Op]; 5] = [
     &[conv(0, 3, 64, 3, 1, 1), conv(2, 64, 64, 3, 1, 1)],
     &[Op::Pool { k: 2, stride: 2 }, conv(5, 64, 128, 3, 1, 1), conv(7, 128, 128, 3, 1, 1)],
-    &[Op::Pool { k: 2, stride: 2 }, conv(10, 128, 256, 3, 1, 1), conv(12, 256, 256, 3, 1, 1), conv(14, 256, 256, 3, 1, 1)],
-    &[Op::Pool { k: 2, stride: 2 }, conv(17, 256, 512, 3, 1, 1), conv(19, 512, 512, 3, 1, 1), conv(21, 512, 512, 3, 1, 1)],
-    &[Op::Pool { k: 2, stride: 2 }, conv(24, 512, 512, 3, 1, 1), conv(26, 512, 512, 3, 1, 1), conv(28, 512, 512, 3, 1, 1)],
+    &[
+        Op::Pool { k: 2, stride: 2 },
+        conv(10, 128, 256, 3, 1, 1),
+        conv(12, 256, 256, 3, 1, 1),
+        conv(14, 256, 256, 3, 1, 1),
+    ],
+    &[
+        Op::Pool { k: 2, stride: 2 },
+        conv(17, 256, 512, 3, 1, 1),
+        conv(19, 512, 512, 3, 1, 1),
+        conv(21, 512, 512, 3, 1, 1),
+    ],
+    &[
+        Op::Pool { k: 2, stride: 2 },
+        conv(24, 512, 512, 3, 1, 1),
+        conv(26, 512, 512, 3, 1, 1),
+        conv(28, 512, 512, 3, 1, 1),
+    ],
 ];
 
 /// AlexNet's `features[0..12]` cut into lpips's slices; the last max pool (`features.12`)
@@ -180,7 +195,17 @@ impl Slice {
             steps.push(match *op {
                 Op::Conv { index, cin, cout, k, stride, padding } => {
                     channels = cout;
-                    let conv = Conv2d::load(w, &format!("features.{index}"), cin, cout, [k, k], stride, [padding, padding], 1, true)?;
+                    let conv = Conv2d::load(
+                        w,
+                        &format!("features.{index}"),
+                        cin,
+                        cout,
+                        [k, k],
+                        stride,
+                        [padding, padding],
+                        1,
+                        true,
+                    )?;
                     Step::ConvRelu(conv)
                 }
                 Op::Pool { k, stride } => Step::MaxPool { k, stride },
@@ -269,7 +294,11 @@ impl Lpips {
             }
         }
         backbone.finish()?;
-        let heads_list = slices.iter().enumerate().map(|(i, s)| LinearHead::load(&mut heads, i, s.channels)).collect::<Result<Vec<_>>>()?;
+        let heads_list = slices
+            .iter()
+            .enumerate()
+            .map(|(i, s)| LinearHead::load(&mut heads, i, s.channels))
+            .collect::<Result<Vec<_>>>()?;
         heads.finish()?;
         let device = heads_list[0].weight.device();
         Ok(Self { net, scaling: ScalingLayer::new(device), slices, heads: heads_list, device })
@@ -476,7 +505,13 @@ mod tests {
         let f32s = |s: &[i64]| Tensor::zeros(s, (Kind::Float, Device::Cpu));
 
         let e = err(swap(&backbone, "features.6.weight", Some(f32s(&[384, 192, 5, 5]))), copy(&heads));
-        assert!(e.contains("backbone.safetensors") && e.contains("'features.6.weight'") && e.contains("[384, 192, 5, 5]") && e.contains("[384, 192, 3, 3]"), "{e}");
+        assert!(
+            e.contains("backbone.safetensors")
+                && e.contains("'features.6.weight'")
+                && e.contains("[384, 192, 5, 5]")
+                && e.contains("[384, 192, 3, 3]"),
+            "{e}"
+        );
         let e = err(swap(&backbone, "features.3.bias", None), copy(&heads));
         assert!(e.contains("'features.3.bias' is missing") && e.contains("[192]"), "{e}");
         let e = err(swap(&backbone, "classifier.4.weight", Some(f32s(&[10, 4096]))), copy(&heads));
@@ -484,10 +519,19 @@ mod tests {
         let e = err(swap(&backbone, "features.1.weight", Some(f32s(&[64]))), copy(&heads));
         assert!(e.contains("unexpected tensor 'features.1.weight'"), "{e}");
         let e = err(copy(&backbone), swap(&heads, "lin2.model.1.weight", Some(f32s(&[1, 256, 1, 1]))));
-        assert!(e.contains("heads.safetensors") && e.contains("'lin2.model.1.weight'") && e.contains("[1, 256, 1, 1]") && e.contains("[1, 384, 1, 1]"), "{e}");
+        assert!(
+            e.contains("heads.safetensors")
+                && e.contains("'lin2.model.1.weight'")
+                && e.contains("[1, 256, 1, 1]")
+                && e.contains("[1, 384, 1, 1]"),
+            "{e}"
+        );
         // VGG heads under AlexNet: the first head that differs is named.
         let (_, vgg_heads) = random_weights(LpipsNet::Vgg16);
         let e = err(backbone, vgg_heads);
-        assert!(e.contains("'lin1.model.1.weight'") && e.contains("[1, 128, 1, 1]") && e.contains("[1, 192, 1, 1]"), "{e}");
+        assert!(
+            e.contains("'lin1.model.1.weight'") && e.contains("[1, 128, 1, 1]") && e.contains("[1, 192, 1, 1]"),
+            "{e}"
+        );
     }
 }

@@ -4,8 +4,8 @@
 pub mod distance;
 pub mod effnet;
 pub mod inception;
+pub mod lpips;
 pub mod perceptual;
 pub mod probe;
 pub mod report;
-pub mod lpips;
 pub mod weights;

@@ -240,7 +240,13 @@ pub struct Probe {
 
 /// The probe's input for `images (N, 3, H, W)` in [−1, 1]: frozen EfficientNet features
 /// (batches of `batch`, no gradient) or the images resized to 64² (antialiased).
-pub fn probe_inputs(backbone: Backbone, effnet: Option<&EfficientNetLite0>, images: &Tensor, batch: i64, progress: &mut dyn FnMut(i64)) -> Result<Tensor> {
+pub fn probe_inputs(
+    backbone: Backbone,
+    effnet: Option<&EfficientNetLite0>,
+    images: &Tensor,
+    batch: i64,
+    progress: &mut dyn FnMut(i64),
+) -> Result<Tensor> {
     let n = images.size()[0];
     match backbone {
         Backbone::Scratch => {
@@ -248,13 +254,19 @@ pub fn probe_inputs(backbone: Backbone, effnet: Option<&EfficientNetLite0>, imag
             let x = if s[2] == SCRATCH_SIZE && s[3] == SCRATCH_SIZE {
                 images.to_kind(Kind::Float)
             } else {
-                images.to_kind(Kind::Float).internal_upsample_bilinear2d_aa(&[SCRATCH_SIZE, SCRATCH_SIZE][..], false, None, None)
+                images.to_kind(Kind::Float).internal_upsample_bilinear2d_aa(
+                    &[SCRATCH_SIZE, SCRATCH_SIZE][..],
+                    false,
+                    None,
+                    None,
+                )
             };
             progress(n);
             Ok(x)
         }
         Backbone::Efficientnet => {
-            let net = effnet.ok_or_else(|| Error::Invalid("the efficientnet probe needs the EfficientNet-Lite0 weights".into()))?;
+            let net = effnet
+                .ok_or_else(|| Error::Invalid("the efficientnet probe needs the EfficientNet-Lite0 weights".into()))?;
             let tap = net.pooled_and_last_tap(images, batch, progress)?.1;
             Ok(with_colour(&tap, images))
         }
@@ -264,7 +276,12 @@ pub fn probe_inputs(backbone: Backbone, effnet: Option<&EfficientNetLite0>, imag
 /// The efficientnet probe's input: the last tap `(N, 320, 7, 7)` with the image at 28²
 /// folded into [`COLOUR_CHANNELS`] more channels.
 pub fn with_colour(tap: &Tensor, images: &Tensor) -> Tensor {
-    let small = images.to_kind(Kind::Float).to_device(tap.device()).internal_upsample_bilinear2d_aa(&[28i64, 28][..], false, None, None);
+    let small = images.to_kind(Kind::Float).to_device(tap.device()).internal_upsample_bilinear2d_aa(
+        &[28i64, 28][..],
+        false,
+        None,
+        None,
+    );
     Tensor::cat(&[tap.shallow_clone(), small.pixel_unshuffle(4)], 1)
 }
 
@@ -312,10 +329,23 @@ impl Probe {
     /// Scores predictions against the truth.
     pub fn score(pred: &Predictions, truth: &Truth, chance: Vec<f64>) -> ProbeScores {
         let accuracy = (0..4)
-            .map(|f| f64::try_from(pred.classes.select(1, f).eq_tensor(&truth.classes.select(1, f)).to_kind(Kind::Double).mean(Kind::Double)).unwrap())
+            .map(|f| {
+                f64::try_from(
+                    pred.classes
+                        .select(1, f)
+                        .eq_tensor(&truth.classes.select(1, f))
+                        .to_kind(Kind::Double)
+                        .mean(Kind::Double),
+                )
+                .unwrap()
+            })
             .collect();
         let m = truth.colour_mask.unsqueeze(2);
-        let colour_mae = f64::try_from(((&pred.colours - &truth.colours).abs() * &m).sum(Kind::Double) / (m.sum(Kind::Double) * 3.0).clamp_min(1.0)).unwrap();
+        let colour_mae = f64::try_from(
+            ((&pred.colours - &truth.colours).abs() * &m).sum(Kind::Double)
+                / (m.sum(Kind::Double) * 3.0).clamp_min(1.0),
+        )
+        .unwrap();
         let deg = 180.0 / std::f64::consts::PI;
         let dp = (pred.poses.select(1, 0) - truth.poses.select(1, 0)).abs() * deg;
         let dy = wrap_deg(&((pred.poses.select(1, 1) - truth.poses.select(1, 1)) * deg)).abs();
@@ -339,7 +369,9 @@ impl Probe {
         progress: &mut dyn FnMut(usize, f64),
     ) -> Result<Self> {
         if cfg.epochs == 0 || cfg.batch_size < 1 || cfg.lr <= 0.0 || !cfg.lr.is_finite() {
-            return Err(Error::Invalid(format!("probe training needs epochs ≥ 1, batch size ≥ 1 and a positive lr, got {cfg:?}")));
+            return Err(Error::Invalid(format!(
+                "probe training needs epochs ≥ 1, batch size ≥ 1 and a positive lr, got {cfg:?}"
+            )));
         }
         let (x, truth) = train;
         let n = x.size()[0];
@@ -351,7 +383,8 @@ impl Probe {
         let mut opt = nn::Adam::default().build(&vs, cfg.lr)?;
         for epoch in 0..cfg.epochs {
             let mut rng = StepRng::new(cfg.seed, epoch as u64, Purpose::ProbeBatches, Kind::Float, Device::Cpu);
-            let order = Tensor::from_slice(&rng.u64s(n as usize).iter().map(|&v| v as f64).collect::<Vec<_>>()).argsort(0, false);
+            let order = Tensor::from_slice(&rng.u64s(n as usize).iter().map(|&v| v as f64).collect::<Vec<_>>())
+                .argsort(0, false);
             let mut total = 0.0;
             let mut batches = 0;
             let mut i = 0;
@@ -366,7 +399,8 @@ impl Probe {
                     loss += l.cross_entropy_for_logits(&t.classes.select(1, f as i64).to_device(device));
                 }
                 let m = t.colour_mask.to_device(device).unsqueeze(2);
-                let colour = ((&colours - t.colours.to_device(device)).square() * &m).sum(Kind::Float) / (m.sum(Kind::Float) * 3.0).clamp_min(1.0);
+                let colour = ((&colours - t.colours.to_device(device)).square() * &m).sum(Kind::Float)
+                    / (m.sum(Kind::Float) * 3.0).clamp_min(1.0);
                 let p = t.poses.to_device(device);
                 let target = Tensor::stack(&[p.select(1, 0), p.select(1, 1).sin(), p.select(1, 1).cos()], 1);
                 let pose_loss = (&pose - target).square().mean(Kind::Float);
@@ -385,7 +419,10 @@ impl Probe {
             header: ProbeHeader {
                 config: cfg.clone(),
                 held_out: ProbeScores::default(),
-                factors: FACTORS.iter().map(|(n, c)| (n.to_string(), c.iter().map(|s| s.to_string()).collect())).collect(),
+                factors: FACTORS
+                    .iter()
+                    .map(|(n, c)| (n.to_string(), c.iter().map(|s| s.to_string()).collect()))
+                    .collect(),
                 train_images: n,
             },
         };
@@ -406,7 +443,8 @@ impl Probe {
         let (json, tensors) = load_tensors_with(path, PROBE_KEY)?;
         let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
         let header: ProbeHeader = serde_json::from_str(&json).map_err(|e| not(format!("bad probe header: {e}")))?;
-        let want: Vec<(String, Vec<String>)> = FACTORS.iter().map(|(n, c)| (n.to_string(), c.iter().map(|s| s.to_string()).collect())).collect();
+        let want: Vec<(String, Vec<String>)> =
+            FACTORS.iter().map(|(n, c)| (n.to_string(), c.iter().map(|s| s.to_string()).collect())).collect();
         if header.factors != want {
             return Err(not(format!("the probe predicts {:?}, this program expects {:?}", header.factors, want)));
         }
@@ -447,7 +485,8 @@ pub fn load_labelled(dir: &Path, resolution: usize, threads: usize, progress: &(
     let meta = Metadata::load(dir)?;
     let opts = LoadOptions { threads, ..LoadOptions::new(resolution) };
     let ds = data::load(dir, &opts, progress)?;
-    let by_name: std::collections::HashMap<&str, &ImageRecord> = meta.images.iter().map(|r| (r.file.as_str(), r)).collect();
+    let by_name: std::collections::HashMap<&str, &ImageRecord> =
+        meta.images.iter().map(|r| (r.file.as_str(), r)).collect();
     let records: Vec<&ImageRecord> = ds
         .names
         .iter()
@@ -458,7 +497,11 @@ pub fn load_labelled(dir: &Path, resolution: usize, threads: usize, progress: &(
             })
         })
         .collect::<Result<_>>()?;
-    Ok(Labelled { images: ds.images(), truth: Truth::from_records(&records)?, records: records.into_iter().cloned().collect() })
+    Ok(Labelled {
+        images: ds.images(),
+        truth: Truth::from_records(&records)?,
+        records: records.into_iter().cloned().collect(),
+    })
 }
 
 /// Per factor: the held-out frequency of the training split's most frequent class.
@@ -469,7 +512,8 @@ pub fn majority_rates(train: &Tensor, held_out: &Tensor) -> Vec<f64> {
         .map(|(f, (_, classes))| {
             let counts = train.select(1, f as i64).bincount(None::<Tensor>, classes.len() as i64);
             let top = counts.argmax(0, false);
-            f64::try_from(held_out.select(1, f as i64).eq_tensor(&top).to_kind(Kind::Double).mean(Kind::Double)).unwrap()
+            f64::try_from(held_out.select(1, f as i64).eq_tensor(&top).to_kind(Kind::Double).mean(Kind::Double))
+                .unwrap()
         })
         .collect()
 }

@@ -114,7 +114,15 @@ pub struct EvalResult {
 
 /// Renders `z` at `poses` (batches of 16, no jitter).
 /// `codes`: shape and appearance codes `(N, latent)` each.
-fn render_codes(g: &Generator, cam: &CameraConfig, rc: &RenderConfig, codes: (&Tensor, &Tensor), poses: &Poses, res: i64, tick: &mut dyn FnMut(i64)) -> Result<Tensor> {
+fn render_codes(
+    g: &Generator,
+    cam: &CameraConfig,
+    rc: &RenderConfig,
+    codes: (&Tensor, &Tensor),
+    poses: &Poses,
+    res: i64,
+    tick: &mut dyn FnMut(i64),
+) -> Result<Tensor> {
     let (zs, za) = codes;
     let renderer = Renderer::new(g, cam, rc)?;
     let n = zs.size()[0];
@@ -246,9 +254,18 @@ pub struct Evaluator {
 }
 
 impl Evaluator {
-    pub fn new(dataset: &Path, probe_path: &Path, opts: &EvalOptions, device: Device, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Self> {
+    pub fn new(
+        dataset: &Path,
+        probe_path: &Path,
+        opts: &EvalOptions,
+        device: Device,
+        progress: &mut dyn FnMut(&str, i64, i64),
+    ) -> Result<Self> {
         if opts.num < 2 || opts.swap < 2 || opts.steps < 2 {
-            return Err(Error::Invalid(format!("eval needs num ≥ 2, swap ≥ 2 and steps ≥ 2, got {}, {}, {}", opts.num, opts.swap, opts.steps)));
+            return Err(Error::Invalid(format!(
+                "eval needs num ≥ 2, swap ≥ 2 and steps ≥ 2, got {}, {}, {}",
+                opts.num, opts.swap, opts.steps
+            )));
         }
         let meta = Metadata::load(dataset)?;
         let res = opts.resolution.unwrap_or(meta.options.resolution as i64);
@@ -267,15 +284,26 @@ impl Evaluator {
         // The real end of the distances: as many training images as generated ones.
         let (train_x, train_t, _) = data.split(Split::Train, Some(opts.num as usize));
         if held_x.size()[0] < 2 || train_x.size()[0] < 2 {
-            return Err(Error::Data { path: dataset.to_path_buf(), reason: "fewer than 2 held-out or training images to compare with".into() });
+            return Err(Error::Data {
+                path: dataset.to_path_buf(),
+                reason: "fewer than 2 held-out or training images to compare with".into(),
+            });
         }
         let k = opts.swap.min(held_x.size()[0]);
         // The dataset's own swaps of k held-out objects (shape of i, appearance of j).
         let mut real_swap = Vec::new();
         for i in 0..k as usize {
             for j in 0..k as usize {
-                let r = synth::render_swap(&meta, held_records[i].object, held_records[j].object, None, Some(res as usize), Some(2))?;
-                real_swap.push(Tensor::from_slice(&r.rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0);
+                let r = synth::render_swap(
+                    &meta,
+                    held_records[i].object,
+                    held_records[j].object,
+                    None,
+                    Some(res as usize),
+                    Some(2),
+                )?;
+                real_swap
+                    .push(Tensor::from_slice(&r.rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0);
             }
             progress("rendering the dataset's swaps", (i as i64 + 1) * k, k * k);
         }
@@ -313,7 +341,12 @@ impl Evaluator {
 
     /// Distance features of `imgs`, and the probe's predictions when they come from the
     /// same EfficientNet pass (the efficientnet probe with efficientnet features).
-    fn features(&self, imgs: &Tensor, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<(Tensor, Option<Predictions>)> {
+    fn features(
+        &self,
+        imgs: &Tensor,
+        what: &str,
+        progress: &mut dyn FnMut(&str, i64, i64),
+    ) -> Result<(Tensor, Option<Predictions>)> {
         let n = imgs.size()[0];
         let shared = self.probe.header.config.backbone == probe::Backbone::Efficientnet;
         match &self.extractor {
@@ -337,7 +370,15 @@ impl Evaluator {
 
     /// Scores a set of images (`images` with the poses they show, a k × k swap matrix).
     #[allow(clippy::too_many_arguments)]
-    fn score_images(&self, images: &Tensor, poses: &Tensor, swap: &Tensor, k: i64, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Scores> {
+    fn score_images(
+        &self,
+        images: &Tensor,
+        poses: &Tensor,
+        swap: &Tensor,
+        k: i64,
+        what: &str,
+        progress: &mut dyn FnMut(&str, i64, i64),
+    ) -> Result<Scores> {
         let (feats, pred) = self.features(images, &format!("features: {what}"), progress)?;
         let fd = distance::frechet(&feats, &self.held_feats)?;
         let kid = distance::kernel(&feats, &self.held_feats, 50, 1000, self.opts.seed)?;
@@ -368,13 +409,20 @@ impl Evaluator {
 
     /// Renders `num` images (codes and poses from the evaluation seed: the same for every
     /// generator) and a swap matrix with `g`, and scores them.
-    pub fn score(&self, g: &Generator, cam: &CameraConfig, what: &str, progress: &mut dyn FnMut(&str, i64, i64)) -> Result<Scores> {
+    pub fn score(
+        &self,
+        g: &Generator,
+        cam: &CameraConfig,
+        what: &str,
+        progress: &mut dyn FnMut(&str, i64, i64),
+    ) -> Result<Scores> {
         let (num, k, res) = (self.opts.num, self.opts.swap, self.resolution);
         let device = g.kind_device().1;
         let rc = RenderConfig { num_steps: self.opts.steps as usize, jitter: false, ..RenderConfig::default() };
         let latent = g.cfg.latent_dim as i64;
         let z = StepRng::new(self.opts.seed, 0, Purpose::EvalCodes, Kind::Float, device).normal(&[num, latent]);
-        let poses = Poses::sample_from(cam, num, &mut StepRng::new(self.opts.seed, 0, Purpose::EvalPoses, Kind::Float, device));
+        let poses =
+            Poses::sample_from(cam, num, &mut StepRng::new(self.opts.seed, 0, Purpose::EvalPoses, Kind::Float, device));
         let k = k.min(num);
         let zk = z.narrow(0, 0, k);
         let (swap_s, swap_a) = (zk.repeat_interleave_self_int(k, 0, None), zk.repeat([k, 1]));
@@ -483,7 +531,10 @@ pub fn evaluate(
 
 /// The scores as text, one line per score.
 pub fn summary(r: &EvalResult) -> String {
-    let mut s = format!("{} images at {}² ({} samples/ray), features: {}\n", r.images, r.resolution, r.samples_per_ray, r.features);
+    let mut s = format!(
+        "{} images at {}² ({} samples/ray), features: {}\n",
+        r.images, r.resolution, r.samples_per_ray, r.features
+    );
     s += &format!("{:<26} {:>10} {:>10} {:>10} {:>9}\n", "score", "model", "real", "random", "position");
     for (name, c) in score_rows(r) {
         s += &format!("{name:<26} {:>10.4} {:>10.4} {:>10.4} {:>9.2}\n", c.model, c.real, c.random, c.position);
@@ -526,10 +577,24 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let mut y = 10;
     draw_text(&mut img, 10, y, &format!("gdrf eval: {} images at {}x{}", r.images, s, s), black, 1);
     y += 14;
-    draw_text(&mut img, 10, y, &format!("{:<24}{:>10}{:>10}{:>10}{:>10}", "score", "model", "real", "random", "position"), black, 1);
+    draw_text(
+        &mut img,
+        10,
+        y,
+        &format!("{:<24}{:>10}{:>10}{:>10}{:>10}", "score", "model", "real", "random", "position"),
+        black,
+        1,
+    );
     for (name, c) in score_rows(r) {
         y += 14;
-        draw_text(&mut img, 10, y, &format!("{name:<24}{:>10.4}{:>10.4}{:>10.4}{:>10.2}", c.model, c.real, c.random, c.position), black, 1);
+        draw_text(
+            &mut img,
+            10,
+            y,
+            &format!("{name:<24}{:>10.4}{:>10.4}{:>10.4}{:>10.2}", c.model, c.real, c.random, c.position),
+            black,
+            1,
+        );
     }
     y += 24;
     draw_text(&mut img, 10, y, "samples", black, 1);
@@ -593,11 +658,21 @@ mod tests {
     fn swap_scores_count_only_informative_pairs() {
         // k = 2: originals differ in legs and colour (red vs blue); cell (0, 1) keeps 0's
         // legs and takes 1's colour, cell (1, 0) takes 0's legs and keeps 1's colour (both wrong).
-        let classes = Tensor::from_slice(&[0i64, 1, 0, 0, /* (0,1) */ 0, 1, 0, 0, /* (1,0) */ 0, 1, 0, 0, /* (1,1) */ 3, 1, 0, 0]).view([4, 4]);
-        let pred = Predictions { classes, colours: Tensor::zeros([4, 4, 3], (Kind::Float, Device::Cpu)), poses: Tensor::zeros([4, 2], (Kind::Float, Device::Cpu)) };
+        let classes = Tensor::from_slice(&[
+            0i64, 1, 0, 0, /* (0,1) */ 0, 1, 0, 0, /* (1,0) */ 0, 1, 0, 0, /* (1,1) */ 3, 1, 0, 0,
+        ])
+        .view([4, 4]);
+        let pred = Predictions {
+            classes,
+            colours: Tensor::zeros([4, 4, 3], (Kind::Float, Device::Cpu)),
+            poses: Tensor::zeros([4, 2], (Kind::Float, Device::Cpu)),
+        };
         let img = |r: f64, b: f64| {
             let t = Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu));
-            let _ = t.narrow(2, 1, 2).narrow(3, 1, 2).copy_(&Tensor::from_slice(&[r as f32, -1.0, b as f32]).view([1, 3, 1, 1]).expand([1, 3, 2, 2], false));
+            let _ = t
+                .narrow(2, 1, 2)
+                .narrow(3, 1, 2)
+                .copy_(&Tensor::from_slice(&[r as f32, -1.0, b as f32]).view([1, 3, 1, 1]).expand([1, 3, 2, 2], false));
             t
         };
         let (red, blue) = (img(0.8, -1.0), img(-1.0, 0.8));
@@ -611,7 +686,11 @@ mod tests {
         assert_eq!(app, 0.5);
         let (t, f) = (Some(true), Some(false));
         assert_eq!(verdicts, vec![(None, None), (t, t), (f, f), (None, None)]);
-        assert_eq!(f64::try_from(colour_histograms(&Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu))).sum(Kind::Double)).unwrap(), 0.0);
+        assert_eq!(
+            f64::try_from(colour_histograms(&Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu))).sum(Kind::Double))
+                .unwrap(),
+            0.0
+        );
         let c = Calibrated::new(5.0, 1.0, 9.0);
         assert_eq!(c.position, 0.5);
     }

@@ -23,8 +23,10 @@ impl Weights {
                 source: std::io::Error::new(std::io::ErrorKind::NotFound, "weights file not found"),
             });
         }
-        let list = Tensor::read_safetensors(path)
-            .map_err(|e| Error::NotACheckpoint { path: path.to_path_buf(), reason: format!("not a readable safetensors file: {e}") })?;
+        let list = Tensor::read_safetensors(path).map_err(|e| Error::NotACheckpoint {
+            path: path.to_path_buf(),
+            reason: format!("not a readable safetensors file: {e}"),
+        })?;
         Ok(Self::from_tensors(path, list, device))
     }
 
@@ -52,9 +54,7 @@ impl Weights {
         }
         match t.kind() {
             Kind::Float | Kind::Double | Kind::Half | Kind::BFloat16 => {}
-            k => {
-                return Err(Error::DType { path: self.path.clone(), name: name.to_string(), found: format!("{k:?}") })
-            }
+            k => return Err(Error::DType { path: self.path.clone(), name: name.to_string(), found: format!("{k:?}") }),
         }
         self.used.insert(name.to_string());
         Ok(t.to_kind(Kind::Float).to_device(self.device).detach())
@@ -90,7 +90,17 @@ pub struct Conv2d {
 impl Conv2d {
     /// Reads `{prefix}.weight` of shape `(cout, cin / groups, kh, kw)` (and `{prefix}.bias`).
     #[allow(clippy::too_many_arguments)]
-    pub fn load(w: &mut Weights, prefix: &str, cin: i64, cout: i64, k: [i64; 2], stride: i64, padding: [i64; 2], groups: i64, bias: bool) -> Result<Self> {
+    pub fn load(
+        w: &mut Weights,
+        prefix: &str,
+        cin: i64,
+        cout: i64,
+        k: [i64; 2],
+        stride: i64,
+        padding: [i64; 2],
+        groups: i64,
+        bias: bool,
+    ) -> Result<Self> {
         let weight = w.get(&format!("{prefix}.weight"), &[cout, cin / groups, k[0], k[1]])?;
         let bias = if bias { Some(w.get(&format!("{prefix}.bias"), &[cout])?) } else { None };
         Ok(Self { weight, bias, stride, padding, groups })
@@ -124,7 +134,16 @@ impl BatchNorm {
     }
 
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        x.batch_norm(Some(&self.weight), Some(&self.bias), Some(&self.mean), Some(&self.var), false, 0.0, self.eps, false)
+        x.batch_norm(
+            Some(&self.weight),
+            Some(&self.bias),
+            Some(&self.mean),
+            Some(&self.var),
+            false,
+            0.0,
+            self.eps,
+            false,
+        )
     }
 }
 

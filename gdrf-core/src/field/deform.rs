@@ -20,8 +20,7 @@ impl DeformField {
         let h = cfg.hidden_dim;
         let film = (0..cfg.deform_layers)
             .map(|i| {
-                let (inp, init) =
-                    if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(25.0)) };
+                let (inp, init) = if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(25.0)) };
                 FilmLayer::new(vs.clone() / "film" / i, inp, h, init)
             })
             .collect();

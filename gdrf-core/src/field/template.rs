@@ -24,8 +24,7 @@ impl TemplateField {
         let h = cfg.hidden_dim;
         let trunk = (0..cfg.trunk_layers)
             .map(|i| {
-                let (inp, init) =
-                    if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(30.0)) };
+                let (inp, init) = if i == 0 { (3, WeightInit::FirstLayer) } else { (h, WeightInit::Frequency(30.0)) };
                 SineLayer::new(vs.clone() / "trunk" / i, inp, h, init)
             })
             .collect();

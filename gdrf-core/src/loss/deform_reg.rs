@@ -169,9 +169,8 @@ fn regularisers_with_grad(gen: &Generator, shape: &Film, samples: &RegSamples, v
     let (dx, dsigma) = gen.deformation(&x, shape);
 
     // Jacobian rows ∂Δx_i/∂x by three reverse passes, kept differentiable.
-    let rows: Vec<Tensor> = (0..3)
-        .map(|i| Tensor::run_backward(&[dx.select(2, i).sum(dx.kind())], &[&x], true, true).remove(0))
-        .collect();
+    let rows: Vec<Tensor> =
+        (0..3).map(|i| Tensor::run_backward(&[dx.select(2, i).sum(dx.kind())], &[&x], true, true).remove(0)).collect();
     let jac = Tensor::stack(&rows, 2); // (B, P, 3, 3), row i = ∇Δx_i
     let eye = Tensor::eye(3, (x.kind(), x.device()));
     let j = &jac + &eye;

@@ -30,7 +30,9 @@ pub fn topk_count(step: i64, n: i64, interval: f64, v: f64) -> i64 {
 /// The gradient is taken with `create_graph` so that the penalty trains D.
 pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Result<Tensor> {
     if !real.requires_grad() || !real_logit.requires_grad() {
-        return Err(Error::Invalid("R1 needs real images that require grad and logits computed from them with autograd on".into()));
+        return Err(Error::Invalid(
+            "R1 needs real images that require grad and logits computed from them with autograd on".into(),
+        ));
     }
     let g = Tensor::run_backward(&[real_logit.sum(real_logit.kind())], &[real], true, true).remove(0);
     // Σx² rather than ‖x‖²: same value, and a plain polynomial has no kink at 0.

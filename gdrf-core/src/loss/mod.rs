@@ -232,7 +232,9 @@ mod tests {
         let every = LossConfig { r1_gamma: 2.0, ..Default::default() };
         assert!(!lazy.r1_due(3) && lazy.r1_due(8) && every.r1_due(3));
         let at = |step| Schedule { step, alpha: 1.0 };
-        let loss = |step, cfg: &LossConfig| discriminator_loss(&dr, &real, Some(&poses), &df, &poses, None, at(step), cfg).unwrap();
+        let loss = |step, cfg: &LossConfig| {
+            discriminator_loss(&dr, &real, Some(&poses), &df, &poses, None, at(step), cfg).unwrap()
+        };
         let off = loss(3, &lazy);
         assert!(off.get("d_r1").is_none());
         let on = loss(8, &lazy);
@@ -252,7 +254,11 @@ mod tests {
     #[test]
     fn generator_total_is_adversarial_plus_weighted_regularisers() {
         let logit = Tensor::from_slice(&[0.3f64, -1.0]).view([2, 1]);
-        let d = DiscOutput { logit, latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)), pose: Tensor::zeros([2, 2], (Kind::Double, Device::Cpu)) };
+        let d = DiscOutput {
+            logit,
+            latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)),
+            pose: Tensor::zeros([2, 2], (Kind::Double, Device::Cpu)),
+        };
         let poses = Tensor::from_slice(&[0.5f64, 0.0, 1.0, 0.0]).view([2, 2]);
         let c = |v: f64| Tensor::from(v);
         let reg = RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
@@ -264,6 +270,8 @@ mod tests {
         assert!((l.total.double_value(&[]) - want).abs() < 1e-12);
         let names: Vec<_> = l.terms.iter().map(|t| t.0).collect();
         assert_eq!(names, ["g_adv", "g_pose", "reg_correction", "reg_smoothness", "reg_rigidity", "reg_normal"]);
-        assert!(generator_adversarial(&d, &poses.narrow(0, 0, 1), None, Schedule { step: 0, alpha: 1.0 }, &cfg).is_err());
+        assert!(
+            generator_adversarial(&d, &poses.narrow(0, 0, 1), None, Schedule { step: 0, alpha: 1.0 }, &cfg).is_err()
+        );
     }
 }

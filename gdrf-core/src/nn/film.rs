@@ -61,7 +61,7 @@ impl FilmLayer {
     pub fn forward(&self, x: &Tensor, gamma: &Tensor, beta: &Tensor) -> Tensor {
         let w = gamma.transpose(1, 2) * &self.linear.weight; // (B, out, in)
         let b = gamma * &self.linear.bias + beta; // (B, 1, out)
-        // Folded in float32, then cast to the points' dtype (reduced-precision evaluation).
+                                                  // Folded in float32, then cast to the points' dtype (reduced-precision evaluation).
         super::like(&b, x).baddbmm(x, &super::like(&w, x).transpose(1, 2), 1, 1).sin()
     }
 }

@@ -75,9 +75,7 @@ impl RenderedRays {
 
     /// Joins per-region results along the ray axis (the order of the image's rays).
     pub fn concat(parts: &[RenderedRays]) -> RenderedRays {
-        let cat = |f: &dyn Fn(&RenderedRays) -> &Tensor| {
-            Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1)
-        };
+        let cat = |f: &dyn Fn(&RenderedRays) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
         RenderedRays {
             pixel: cat(&|p| &p.pixel),
             depth: cat(&|p| &p.depth),
@@ -243,11 +241,7 @@ impl<'a> Renderer<'a> {
             Ok(())
         })?;
         let to_image = |parts: &[Tensor], c: i64| Tensor::cat(parts, 0).permute([0, 2, 1]).reshape([b, c, res, res]);
-        Ok(Image {
-            rgb: to_image(&pix, 3) * 2.0 - 1.0,
-            depth: to_image(&depth, 1),
-            opacity: to_image(&opacity, 1),
-        })
+        Ok(Image { rgb: to_image(&pix, 3) * 2.0 - 1.0, depth: to_image(&depth, 1), opacity: to_image(&opacity, 1) })
     }
 
     /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
@@ -385,7 +379,8 @@ mod tests {
         let poses = Poses::from_angles(&[(1.0, 0.2), (1.3, -2.0)], Kind::Double, Device::Cpu);
         let (img, parts) = r.render_regions(&lat, &poses, 6, 3, &Noise::default()).unwrap();
         let rays = r.region_rays(&poses, 6, 3).unwrap();
-        let again: Vec<_> = parts.iter().zip(&rays).map(|(p, ray)| r.render_at_depths(&lat, ray, &p.z).unwrap()).collect();
+        let again: Vec<_> =
+            parts.iter().zip(&rays).map(|(p, ray)| r.render_at_depths(&lat, ray, &p.z).unwrap()).collect();
         let img2 = assemble_image(&again, 6);
         assert!(img.allclose(&img2, 1e-12, 1e-12, false));
         assert!(r.render_at_depths(&lat, &rays[0], &parts[0].z.narrow(1, 0, 2)).is_err());

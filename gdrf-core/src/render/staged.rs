@@ -48,7 +48,12 @@ impl Renderer<'_> {
             let s = d.z.size();
             let (b, r, n) = (s[0], s[1], s[2]);
             // Integration without colour: the weights, opacity and depth of composite().
-            let c = composite(&d.sigma.zeros_like().expand([b, r, n, 3], false), &d.sigma, &d.z.unsqueeze(-1), &self.composite_options());
+            let c = composite(
+                &d.sigma.zeros_like().expand([b, r, n, 3], false),
+                &d.sigma,
+                &d.z.unsqueeze(-1),
+                &self.composite_options(),
+            );
             let w = c.weights.view([b * r * n]);
             let keep = if min_weight > 0.0 { w.gt(min_weight) } else { w.ones_like().to_kind(Kind::Bool) };
             let flat = keep.nonzero().view([-1]);
@@ -75,14 +80,24 @@ impl Renderer<'_> {
     /// Density-first rendering of rays `(B, R, 3)` in chunks of about `chunk_points`
     /// samples: `(pixel (B, R, 3), depth (B, R, 1), opacity (B, R, 1))`, shading only the
     /// samples whose weight exceeds `shade_min_weight`.
-    pub fn render_staged_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<(Tensor, Tensor, Tensor)> {
+    pub fn render_staged_chunked(
+        &self,
+        latents: &Latents,
+        rays: &Rays,
+        noise: &Noise,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
         let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b);
         let (mut pix, mut depth, mut opacity) = (Vec::new(), Vec::new(), Vec::new());
         let mut start = 0;
         while start < r {
             let len = chunk.min(r - start);
-            let side = self.shape_side(&latents.shape, &rays.narrow(start, len), &noise.slice(0, b, start, len), self.config.shade_min_weight)?;
+            let side = self.shape_side(
+                &latents.shape,
+                &rays.narrow(start, len),
+                &noise.slice(0, b, start, len),
+                self.config.shade_min_weight,
+            )?;
             pix.push(self.shade(&side, &latents.appearance)?);
             depth.push(side.depth);
             opacity.push(side.opacity);
@@ -95,7 +110,11 @@ impl Renderer<'_> {
     /// colour branch on the kept samples only, composited as [`composite`] does.
     pub fn shade(&self, side: &ShapeSide, appearance: &Film) -> Result<Tensor> {
         if appearance.batch_size() != side.batch {
-            return Err(Error::Invalid(format!("{} appearances for a shape side of {} images", appearance.batch_size(), side.batch)));
+            return Err(Error::Invalid(format!(
+                "{} appearances for a shape side of {} images",
+                appearance.batch_size(),
+                side.batch
+            )));
         }
         let o = self.composite_options();
         tch::no_grad(|| {
@@ -116,7 +135,11 @@ impl Renderer<'_> {
             }
             let rgb = rgb * (1.0 + 2.0 * o.widen_eps) - o.widen_eps;
             let target = &side.image * side.rays + &side.ray;
-            let pixel = Tensor::zeros([side.batch * side.rays, 3], (kind, device)).index_add(0, &target, &(&side.weights * rgb));
+            let pixel = Tensor::zeros([side.batch * side.rays, 3], (kind, device)).index_add(
+                0,
+                &target,
+                &(&side.weights * rgb),
+            );
             let mut pixel = pixel.view([side.batch, side.rays, 3]);
             if o.white_back {
                 pixel = (pixel + 1.0) - &side.opacity;

@@ -249,7 +249,9 @@ fn lexical_join(base: &Path, p: &Path) -> std::path::PathBuf {
     for c in base.join(p).components() {
         match c {
             std::path::Component::CurDir => {}
-            std::path::Component::ParentDir if matches!(out.components().next_back(), Some(std::path::Component::Normal(_))) => {
+            std::path::Component::ParentDir
+                if matches!(out.components().next_back(), Some(std::path::Component::Normal(_))) =>
+            {
                 out.pop();
             }
             c => out.push(c),
@@ -278,7 +280,8 @@ impl TrainConfig {
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.into(), source })?;
         // Absolute, so that a run resumes from any working directory.
-        let base = std::path::absolute(path.parent().unwrap_or(Path::new("."))).map_err(|source| Error::Io { path: path.into(), source })?;
+        let base = std::path::absolute(path.parent().unwrap_or(Path::new(".")))
+            .map_err(|source| Error::Io { path: path.into(), source })?;
         Self::from_toml(&text, &base).map_err(|e| match e {
             Error::Config(m) => Error::Config(format!("{}: {m}", path.display())),
             e => e,
@@ -353,7 +356,10 @@ impl TrainConfig {
             )));
         }
         if s.sample_interval < 0 {
-            return Err(cfg_err(format!("schedule.sample_interval is {}, expected 0 (never) or more", s.sample_interval)));
+            return Err(cfg_err(format!(
+                "schedule.sample_interval is {}, expected 0 (never) or more",
+                s.sample_interval
+            )));
         }
         let sm = &self.samples;
         if sm.count < 1 || sm.swap < 1 || sm.yaws.is_empty() || sm.resolution < 0 {
@@ -387,7 +393,11 @@ impl TrainConfig {
                 )));
             }
             if !(8..=512).contains(&st.resolution) || st.resolution.count_ones() != 1 {
-                return Err(cfg_err(format!("{} is {}, expected a power of two from 8 to 512", key("resolution"), st.resolution)));
+                return Err(cfg_err(format!(
+                    "{} is {}, expected a power of two from 8 to 512",
+                    key("resolution"),
+                    st.resolution
+                )));
             }
             if st.num_steps < 3 {
                 return Err(cfg_err(format!("{} is {}, expected at least 3", key("num_steps"), st.num_steps)));

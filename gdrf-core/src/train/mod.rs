@@ -16,6 +16,7 @@ pub mod samples;
 pub use config::{Stage, TrainConfig};
 pub use pass::{discriminator_pass, generator_pass, FakeBatch};
 
+use crate::camera::Poses;
 use crate::checkpoint::{self, Header};
 use crate::data::{self, Dataset};
 use crate::disc::Discriminator;
@@ -23,7 +24,6 @@ use crate::loss::deform_reg::{reg_ray_count, select_samples};
 use crate::loss::{generator_adversarial, generator_regularisation, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
-use crate::camera::Poses;
 use crate::{Error, Generator, Result};
 use optim::{clip_grads, copy_vars, grad_norm, zero_grads, Adam, Ema};
 use serde::{Deserialize, Serialize};
@@ -108,7 +108,9 @@ pub struct StepReport {
 impl StepReport {
     /// The metrics.jsonl line.
     pub fn to_json(&self, p: &Progress) -> serde_json::Value {
-        let terms = |t: &[(&str, f64)]| t.iter().map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>();
+        let terms = |t: &[(&str, f64)]| {
+            t.iter().map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>()
+        };
         serde_json::json!({
             "step": self.step,
             "stage": self.stage,
@@ -248,18 +250,26 @@ impl Trainer {
         if ckpt.header.model != "training_state" {
             return Err(bad(format!("it holds a '{}', not a training state", ckpt.header.model)));
         }
-        let th: TrainingHeader = serde_json::from_value(ckpt.header.training.clone().ok_or_else(|| bad("no training header".into()))?)
-            .map_err(|e| bad(format!("bad training header: {e}")))?;
+        let th: TrainingHeader =
+            serde_json::from_value(ckpt.header.training.clone().ok_or_else(|| bad("no training header".into()))?)
+                .map_err(|e| bad(format!("bad training header: {e}")))?;
         let mut cfg = th.config;
         if let Some(d) = device {
             cfg.device = d.to_string();
         }
         let mut t = Self::new(cfg, run_dir)?;
         let split = |prefix: &str| -> BTreeMap<String, Tensor> {
-            ckpt.tensors.iter().filter_map(|(n, v)| n.strip_prefix(prefix).map(|n| (n.to_string(), v.shallow_clone()))).collect()
+            ckpt.tensors
+                .iter()
+                .filter_map(|(n, v)| n.strip_prefix(prefix).map(|n| (n.to_string(), v.shallow_clone())))
+                .collect()
         };
         for (prefix, vs) in [("generator.", &mut t.gvs), ("ema.", &mut t.evs), ("discriminator.", &mut t.dvs)] {
-            let part = checkpoint::Checkpoint { path: path.to_path_buf(), header: ckpt.header.clone(), tensors: split(prefix) };
+            let part = checkpoint::Checkpoint {
+                path: path.to_path_buf(),
+                header: ckpt.header.clone(),
+                tensors: split(prefix),
+            };
             part.load_into(vs).map_err(|e| bad(format!("{prefix}*: {e}")))?;
         }
         let p = th.progress;
@@ -281,7 +291,10 @@ impl Trainer {
             let opts = self.cfg.data.load_options(res as usize, self.cfg.threads);
             let ds = data::load(&self.cfg.data.path, &opts, &|| {})?;
             if ds.is_empty() {
-                return Err(Error::Data { path: self.cfg.data.path.clone(), reason: "the dataset holds no images".into() });
+                return Err(Error::Data {
+                    path: self.cfg.data.path.clone(),
+                    reason: "the dataset holds no images".into(),
+                });
             }
             self.datasets.insert(res, ds);
         }
@@ -301,7 +314,8 @@ impl Trainer {
                 let epoch = pos / n;
                 if self.permutation.as_ref().map(|p| (p.0, p.1.len() as i64)) != Some((epoch, n)) {
                     let mut perm: Vec<i64> = (0..n).collect();
-                    let mut r = StepRng::new(self.cfg.seed, epoch as u64, Purpose::RealIndices, Kind::Float, Device::Cpu);
+                    let mut r =
+                        StepRng::new(self.cfg.seed, epoch as u64, Purpose::RealIndices, Kind::Float, Device::Cpu);
                     let u = r.u64s(n as usize);
                     for k in (1..n as usize).rev() {
                         perm.swap(k, (u[k] % (k as u64 + 1)) as usize);
@@ -413,7 +427,14 @@ impl Trainer {
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
         let lat = tch::no_grad(|| self.generator.latents(&z, &z, None));
-        let fake = FakeBatch { latents: &lat, poses: &poses, z: Some(&z), resolution: stage.resolution, regions: stage.regions, noise: &noise };
+        let fake = FakeBatch {
+            latents: &lat,
+            poses: &poses,
+            z: Some(&z),
+            resolution: stage.resolution,
+            regions: stage.regions,
+            noise: &noise,
+        };
         let losses = discriminator_pass(&renderer, &self.disc, real, real_poses, &fake, at, &self.cfg.loss)?;
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
@@ -445,9 +466,10 @@ impl Trainer {
         let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
         let (z, poses, noise) = self.fake_draws(stage, step, purposes);
         let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
-        let reg_rays = Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
-            .view([b, n_reg])
-            .to_device(self.device);
+        let reg_rays =
+            Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
+                .view([b, n_reg])
+                .to_device(self.device);
         let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
 
         // The generator step leaves D's parameters alone: frozen, they get no gradient.
@@ -462,8 +484,10 @@ impl Trainer {
                 let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
                 let z = sl(&z);
                 let poses = poses.narrow(c * chunk, chunk);
-                let noise = Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
-                let losses = self.generator_chunk(stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
+                let noise =
+                    Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
+                let losses =
+                    self.generator_chunk(stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
                 total += losses.total.double_value(&[]) / split as f64;
                 for (i, (k, v)) in losses.values().into_iter().enumerate() {
                     if i == sums.len() {
@@ -625,7 +649,12 @@ impl Trainer {
         let path = dir.join(run::checkpoint_name(self.progress.step));
         let mut header = self.header("training_state");
         // The optimisers and the EMA own their step counts; the header carries them.
-        let progress = Progress { adam_g_t: self.adam_g.t, adam_d_t: self.adam_d.t, ema_updates: self.ema.updates, ..self.progress.clone() };
+        let progress = Progress {
+            adam_g_t: self.adam_g.t,
+            adam_d_t: self.adam_d.t,
+            ema_updates: self.ema.updates,
+            ..self.progress.clone()
+        };
         let th = TrainingHeader { progress, stage: self.cfg.stage_index(self.progress.step), config: self.cfg.clone() };
         header.training = Some(serde_json::to_value(&th).map_err(|e| Error::Invalid(e.to_string()))?);
         checkpoint::save(&path, &self.state_tensors(), &header)?;

@@ -60,9 +60,15 @@ impl Adam {
         for (kind, map) in [("m", &mut self.m), ("v", &mut self.v)] {
             for (name, dst) in map.iter_mut() {
                 let key = format!("{prefix}{kind}.{name}");
-                let src = tensors.get(&key).ok_or_else(|| Error::Invalid(format!("checkpoint lacks the optimiser tensor '{key}'")))?;
+                let src = tensors
+                    .get(&key)
+                    .ok_or_else(|| Error::Invalid(format!("checkpoint lacks the optimiser tensor '{key}'")))?;
                 if src.size() != dst.size() {
-                    return Err(Error::Invalid(format!("optimiser tensor '{key}' has shape {:?}, expected {:?}", src.size(), dst.size())));
+                    return Err(Error::Invalid(format!(
+                        "optimiser tensor '{key}' has shape {:?}, expected {:?}",
+                        src.size(),
+                        dst.size()
+                    )));
                 }
                 tch::no_grad(|| dst.copy_(&src.to_kind(dst.kind()).to_device(dst.device())));
             }

@@ -52,8 +52,10 @@ pub fn discriminator_pass(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let fakes =
-        tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?.0;
-    let real = if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(cfg.r1_due(at.step)) };
+        tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?
+            .0;
+    let real =
+        if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(cfg.r1_due(at.step)) };
     let dr = disc.forward(&real, at.alpha)?;
     let df = disc.forward(&fakes, at.alpha)?;
     discriminator_loss(&dr, &real, real_poses, &df, &fake.poses.stacked(), fake.z, at, cfg)

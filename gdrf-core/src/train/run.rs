@@ -51,7 +51,9 @@ pub fn list_checkpoints(run_dir: &Path) -> Result<Vec<(i64, PathBuf)>> {
 pub fn latest_checkpoint(run_dir: &Path) -> Result<(i64, PathBuf)> {
     list_checkpoints(run_dir)?.pop().ok_or_else(|| Error::Data {
         path: run_dir.to_path_buf(),
-        reason: format!("no checkpoint in {CHECKPOINTS}/ (expected step-NNNNNNNN.safetensors); is this a gdrf-train run directory?"),
+        reason: format!(
+            "no checkpoint in {CHECKPOINTS}/ (expected step-NNNNNNNN.safetensors); is this a gdrf-train run directory?"
+        ),
     })
 }
 

@@ -26,7 +26,8 @@ pub struct Previews {
 /// The run's fixed preview codes `(count, latent)`.
 pub fn preview_codes(t: &Trainer) -> Tensor {
     let n = t.cfg.samples.count.max(t.cfg.samples.swap);
-    StepRng::new(t.cfg.seed, 0, Purpose::SampleCodes, Kind::Float, t.device).normal(&[n, t.cfg.generator.latent_dim as i64])
+    StepRng::new(t.cfg.seed, 0, Purpose::SampleCodes, Kind::Float, t.device)
+        .normal(&[n, t.cfg.generator.latent_dim as i64])
 }
 
 /// Renders the previews with the EMA generator at the current stage's sampling.
@@ -60,7 +61,8 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
         let shape = zk.repeat_interleave_self_int(k, 0, None);
         let appearance = zk.repeat([k, 1]);
         let swap_lat = gen.latents(&shape, &appearance, None);
-        let swap = (0..k * k).map(|i| render(&swap_lat, i, first_yaw, FieldOptions::default())).collect::<Result<Vec<_>>>()?;
+        let swap =
+            (0..k * k).map(|i| render(&swap_lat, i, first_yaw, FieldOptions::default())).collect::<Result<Vec<_>>>()?;
         let mut template = Vec::new();
         for opts in [
             FieldOptions::default(),
@@ -89,7 +91,9 @@ pub fn write_previews(t: &Trainer) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(&dir).map_err(|source| crate::Error::Io { path: dir.clone(), source })?;
     let tag = format!("step-{:08}", t.progress.step);
     let mut out = Vec::new();
-    for (name, imgs, cols) in [("samples", &p.samples, p.count), ("swap", &p.swap, p.swap_side), ("template", &p.template, p.count)] {
+    for (name, imgs, cols) in
+        [("samples", &p.samples, p.count), ("swap", &p.swap, p.swap_side), ("template", &p.template, p.count)]
+    {
         let img = io::to_rgb8(&io::grid(imgs, cols), false)?;
         let path = dir.join(format!("{tag}-{name}.png"));
         io::save_png(&path, &img)?;
@@ -101,5 +105,8 @@ pub fn write_previews(t: &Trainer) -> Result<Vec<PathBuf>> {
 
 /// Paths of the latest previews of a run directory.
 pub fn latest_previews(run_dir: &Path) -> Vec<PathBuf> {
-    ["samples", "swap", "template"].iter().map(|n| run_dir.join(super::run::SAMPLES).join(format!("latest-{n}.png"))).collect()
+    ["samples", "swap", "template"]
+        .iter()
+        .map(|n| run_dir.join(super::run::SAMPLES).join(format!("latest-{n}.png")))
+        .collect()
 }

@@ -3,13 +3,13 @@
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use gdrf_core::camera::Poses;
-use gdrf_core::disc::Discriminator;
-use gdrf_core::loss::{LossConfig, Schedule};
 use gdrf_core::data::layouts::Layout;
 use gdrf_core::data::synth::SynthOptions;
 use gdrf_core::data::SplitChoice;
-use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfig, Trainer};
+use gdrf_core::disc::Discriminator;
+use gdrf_core::loss::{LossConfig, Schedule};
 use gdrf_core::render::{Noise, Renderer};
+use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfig, Trainer};
 use gdrf_core::{device, CameraConfig, Generator, GeneratorConfig, RenderConfig};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -213,7 +213,8 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
         t.entry("d_forward").or_default().push((t1 - t0).as_secs_f64());
         t.entry("d_backward").or_default().push(t1.elapsed().as_secs_f64());
     }
-    let med: serde_json::Map<String, serde_json::Value> = t.iter().map(|(k, v)| (k.to_string(), json!(median(v)))).collect();
+    let med: serde_json::Map<String, serde_json::Value> =
+        t.iter().map(|(k, v)| (k.to_string(), json!(median(v)))).collect();
     Ok(json!({
         "implementation": "gdrf (tch)",
         "threads": threads,
@@ -228,7 +229,8 @@ struct TempDir(PathBuf);
 
 impl TempDir {
     fn new(prefix: &str) -> Result<Self> {
-        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+        let nanos =
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
         let dir = std::env::temp_dir().join(format!("{prefix}-{}-{nanos}", std::process::id()));
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         Ok(Self(dir))
@@ -244,7 +246,13 @@ impl Drop for TempDir {
 /// The config of `gdrf-bench step`: stage `stage` of the file as the only stage (batch
 /// overridden), on the CPU, never sampling or rolling back, training on a small
 /// procedural dataset under `tmp`. Also returns notes on what the comparison leaves out.
-fn step_config(path: &Path, stage: usize, batch: Option<i64>, split: Option<i64>, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
+fn step_config(
+    path: &Path,
+    stage: usize,
+    batch: Option<i64>,
+    split: Option<i64>,
+    tmp: &Path,
+) -> Result<(TrainConfig, Vec<String>)> {
     let mut cfg = TrainConfig::load(path)?;
     let n = cfg.stages.len();
     if stage >= n {
@@ -284,7 +292,10 @@ fn step_config(path: &Path, stage: usize, batch: Option<i64>, split: Option<i64>
         notes.push("render.hierarchical is off; the reference always adds importance samples".into());
     }
     if cfg.generator.deform_scale != 1.0 {
-        notes.push(format!("generator.deform_scale {} is not modelled by the reference (1)", cfg.generator.deform_scale));
+        notes.push(format!(
+            "generator.deform_scale {} is not modelled by the reference (1)",
+            cfg.generator.deform_scale
+        ));
     }
     if cfg.loss.latent_weight != 0.0 {
         notes.push("loss.latent_weight is not 0; the reference has no latent loss".into());
@@ -306,14 +317,8 @@ fn step_config(path: &Path, stage: usize, batch: Option<i64>, split: Option<i64>
     cfg.data.split = SplitChoice::Train;
     cfg.data.cache = false;
     cfg.data.cache_dir = None;
-    cfg.data.synth = Some(SynthOptions {
-        count: 64,
-        resolution,
-        supersample: 1,
-        shadows: false,
-        held_out_fraction: 0.0,
-        ..synth
-    });
+    cfg.data.synth =
+        Some(SynthOptions { count: 64, resolution, supersample: 1, shadows: false, held_out_fraction: 0.0, ..synth });
     cfg.validate()?;
     Ok((cfg, notes))
 }
@@ -534,7 +539,10 @@ fn run() -> Result<()> {
                 runs.push(run_reference("bench_losses.py", &args)?);
             }
             println!("{title}");
-            println!("{:<14}{:>14}{:>14}{:>14}{:>14}{:>12}", "", "G forward s", "G backward s", "D forward s", "D backward s", "peak MB");
+            println!(
+                "{:<14}{:>14}{:>14}{:>14}{:>14}{:>12}",
+                "", "G forward s", "G backward s", "D forward s", "D backward s", "peak MB"
+            );
             let phases = ["g_forward", "g_backward", "d_forward", "d_backward"];
             for r in &runs {
                 print!("{:<14}", r["implementation"].as_str().unwrap_or("?"));
@@ -547,7 +555,9 @@ fn run() -> Result<()> {
                 let total = |r: &serde_json::Value, a: &str, b: &str| {
                     r["median_s"][a].as_f64().unwrap() + r["median_s"][b].as_f64().unwrap()
                 };
-                for (name, a, b) in [("G loss + backward", "g_forward", "g_backward"), ("D loss + backward", "d_forward", "d_backward")] {
+                for (name, a, b) in
+                    [("G loss + backward", "g_forward", "g_backward"), ("D loss + backward", "d_forward", "d_backward")]
+                {
                     let (x, y) = (total(&runs[0], a, b), total(&runs[1], a, b));
                     println!("{name}: gdrf {x:.2} s, reference {y:.2} s, reference/gdrf = {:.2}×", y / x);
                 }

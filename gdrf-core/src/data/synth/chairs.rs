@@ -69,11 +69,17 @@ pub enum Back {
     None,
     Solid,
     /// Posts, a top rail and `count` vertical slats with gaps between them.
-    Slats { count: u32 },
+    Slats {
+        count: u32,
+    },
     /// Posts and `rungs` horizontal rungs.
-    Ladder { rungs: u32 },
+    Ladder {
+        rungs: u32,
+    },
     /// Posts, top and bottom rails of height `rail` around one opening.
-    Frame { rail: f32 },
+    Frame {
+        rail: f32,
+    },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -162,7 +168,14 @@ impl ChairParams {
                 match self.arms {
                     Arms::None => {}
                     Arms::Open => {
-                        prims.push(beam(v3(s * x, h - t / 2.0, z_front), v3(s * x, top, z_front), m / 2.0, m / 2.0, None, ARMS));
+                        prims.push(beam(
+                            v3(s * x, h - t / 2.0, z_front),
+                            v3(s * x, top, z_front),
+                            m / 2.0,
+                            m / 2.0,
+                            None,
+                            ARMS,
+                        ));
                         prims.push(beam(
                             v3(s * x, top, z_front + m),
                             v3(s * x, top, z_back),
@@ -175,7 +188,10 @@ impl ChairParams {
                     Arms::Panel => {
                         let (za, zc) = (z_back.min(zb), z_front + m / 2.0);
                         prims.push(Prim::new(
-                            Shape::RoundBox { half: v3(0.6 * m, (self.arm_height + t) / 2.0, (zc - za) / 2.0), round: 0.3 * m },
+                            Shape::RoundBox {
+                                half: v3(0.6 * m, (self.arm_height + t) / 2.0, (zc - za) / 2.0),
+                                round: 0.3 * m,
+                            },
                             Rot::IDENTITY,
                             v3(s * x, h - t + (self.arm_height + t) / 2.0, (za + zc) / 2.0),
                             ARMS,
@@ -200,7 +216,10 @@ impl ChairParams {
         let at = |x: f32, y: f32| pivot + rot.apply_inv(v3(x, y, 0.0));
         let panel = |prims: &mut Vec<Prim>, x0: f32, x1: f32, y0: f32, y1: f32, depth: f32| {
             prims.push(Prim::new(
-                Shape::RoundBox { half: v3((x1 - x0) / 2.0, (y1 - y0) / 2.0, depth / 2.0), round: 0.3 * depth.min(y1 - y0).min(x1 - x0) },
+                Shape::RoundBox {
+                    half: v3((x1 - x0) / 2.0, (y1 - y0) / 2.0, depth / 2.0),
+                    round: 0.3 * depth.min(y1 - y0).min(x1 - x0),
+                },
                 rot,
                 at((x0 + x1) / 2.0, (y0 + y1) / 2.0),
                 BACK,
@@ -208,7 +227,14 @@ impl ChairParams {
         };
         let posts = |prims: &mut Vec<Prim>, half_w: f32| {
             for s in [-1.0, 1.0] {
-                prims.push(beam(at(s * bw, -t / 2.0), at(s * bw, bh), half_w, m / 2.0, Some(rot.apply_inv(v3(1.0, 0.0, 0.0))), BACK));
+                prims.push(beam(
+                    at(s * bw, -t / 2.0),
+                    at(s * bw, bh),
+                    half_w,
+                    m / 2.0,
+                    Some(rot.apply_inv(v3(1.0, 0.0, 0.0))),
+                    BACK,
+                ));
             }
         };
         let rail = (1.5 * m).max(0.04);
@@ -252,14 +278,24 @@ impl ChairParams {
         match self.legs {
             Legs::Four { splay, round, stretchers } => {
                 let corners: Vec<(f32, f32)> = if round_seat {
-                    (0..4).map(|i| (TAU * (i as f32 + 0.5) / 4.0).sin_cos()).map(|(s, c)| (0.7 * hw * c, 0.7 * hw * s)).collect()
+                    (0..4)
+                        .map(|i| (TAU * (i as f32 + 0.5) / 4.0).sin_cos())
+                        .map(|(s, c)| (0.7 * hw * c, 0.7 * hw * s))
+                        .collect()
                 } else {
-                    [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].iter().map(|(a, b)| (a * (hw - 0.75 * m), b * (hd - 0.75 * m))).collect()
+                    [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+                        .iter()
+                        .map(|(a, b)| (a * (hw - 0.75 * m), b * (hd - 0.75 * m)))
+                        .collect()
                 };
                 let legs: Vec<(V3, V3)> = corners.iter().map(|&(x, z)| splayed(x, z, splay)).collect();
                 for &(top, foot) in &legs {
                     let foot = foot + v3(0.0, m / 2.0, 0.0);
-                    prims.push(if round { rod(top, foot, m / 2.0, LEGS) } else { beam(foot, top, m / 2.0, m / 2.0, None, LEGS) });
+                    prims.push(if round {
+                        rod(top, foot, m / 2.0, LEGS)
+                    } else {
+                        beam(foot, top, m / 2.0, m / 2.0, None, LEGS)
+                    });
                 }
                 if stretchers {
                     let f = 0.25;
@@ -279,7 +315,12 @@ impl ChairParams {
             }
             Legs::Swivel { spokes, radius } => {
                 let hub_y = 0.08;
-                prims.push(Prim::new(Shape::RoundBox { half: v3(0.11, 0.015, 0.11), round: 0.005 }, Rot::IDENTITY, v3(0.0, yb - 0.015, 0.0), LEGS));
+                prims.push(Prim::new(
+                    Shape::RoundBox { half: v3(0.11, 0.015, 0.11), round: 0.005 },
+                    Rot::IDENTITY,
+                    v3(0.0, yb - 0.015, 0.0),
+                    LEGS,
+                ));
                 let col_lo = hub_y;
                 prims.push(Prim::new(
                     Shape::Cylinder { radius: 0.022, half_height: (yb - col_lo) / 2.0, round: 0.0 },
@@ -293,12 +334,29 @@ impl ChairParams {
                     v3(0.0, hub_y + 0.08, 0.0),
                     LEGS,
                 ));
-                prims.push(Prim::new(Shape::Cylinder { radius: 0.05, half_height: 0.025, round: 0.008 }, Rot::IDENTITY, v3(0.0, hub_y, 0.0), LEGS));
+                prims.push(Prim::new(
+                    Shape::Cylinder { radius: 0.05, half_height: 0.025, round: 0.008 },
+                    Rot::IDENTITY,
+                    v3(0.0, hub_y, 0.0),
+                    LEGS,
+                ));
                 for i in 0..spokes {
                     let (s, c) = (FRAC_PI_2 + TAU * i as f32 / spokes as f32).sin_cos();
                     let end = v3(radius * c, 0.06, radius * s);
-                    prims.push(beam(v3(0.0, hub_y, 0.0), end, 0.018, 0.014, Some(v3(0.0, 1.0, 0.0).cross(v3(c, 0.0, s))), LEGS));
-                    prims.push(Prim::new(Shape::Sphere { radius: 0.03 }, Rot::IDENTITY, v3(radius * c, 0.03, radius * s), LEGS));
+                    prims.push(beam(
+                        v3(0.0, hub_y, 0.0),
+                        end,
+                        0.018,
+                        0.014,
+                        Some(v3(0.0, 1.0, 0.0).cross(v3(c, 0.0, s))),
+                        LEGS,
+                    ));
+                    prims.push(Prim::new(
+                        Shape::Sphere { radius: 0.03 },
+                        Rot::IDENTITY,
+                        v3(radius * c, 0.03, radius * s),
+                        LEGS,
+                    ));
                 }
             }
             Legs::Sled { cantilever } => {
@@ -328,11 +386,26 @@ impl ChairParams {
             Legs::Pedestal { block, base_radius } => {
                 if block {
                     let (bx, bz) = if round_seat { (0.6 * hw, 0.6 * hw) } else { (0.8 * hw, 0.8 * hd) };
-                    prims.push(Prim::new(Shape::RoundBox { half: v3(bx, yb / 2.0, bz), round: 0.02 }, Rot::IDENTITY, v3(0.0, yb / 2.0, 0.0), LEGS));
+                    prims.push(Prim::new(
+                        Shape::RoundBox { half: v3(bx, yb / 2.0, bz), round: 0.02 },
+                        Rot::IDENTITY,
+                        v3(0.0, yb / 2.0, 0.0),
+                        LEGS,
+                    ));
                 } else {
                     let col = 0.04 + 0.15 * base_radius;
-                    prims.push(Prim::new(Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 }, Rot::IDENTITY, v3(0.0, yb / 2.0, 0.0), LEGS));
-                    prims.push(Prim::new(Shape::Cylinder { radius: base_radius, half_height: 0.015, round: 0.01 }, Rot::IDENTITY, v3(0.0, 0.015, 0.0), LEGS));
+                    prims.push(Prim::new(
+                        Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 },
+                        Rot::IDENTITY,
+                        v3(0.0, yb / 2.0, 0.0),
+                        LEGS,
+                    ));
+                    prims.push(Prim::new(
+                        Shape::Cylinder { radius: base_radius, half_height: 0.015, round: 0.01 },
+                        Rot::IDENTITY,
+                        v3(0.0, 0.015, 0.0),
+                        LEGS,
+                    ));
                 }
             }
         }

@@ -32,12 +32,26 @@ pub struct Material {
 pub enum Pattern {
     Plain,
     /// Bands of `accent` covering a `duty` fraction of each `period` along `normal`.
-    Stripes { normal: [f32; 3], period: f32, duty: f32, phase: f32 },
+    Stripes {
+        normal: [f32; 3],
+        period: f32,
+        duty: f32,
+        phase: f32,
+    },
     /// A 3D checkerboard with cells of size `period`, shifted by `offset`.
-    Checker { period: f32, offset: [f32; 3] },
+    Checker {
+        period: f32,
+        offset: [f32; 3],
+    },
     /// Wood-like growth rings around a line along `axis` through `centre`, warped by
     /// value noise of amplitude `warp` (in ring periods).
-    Grain { axis: [f32; 3], centre: [f32; 3], period: f32, warp: f32, noise_seed: u32 },
+    Grain {
+        axis: [f32; 3],
+        centre: [f32; 3],
+        period: f32,
+        warp: f32,
+        noise_seed: u32,
+    },
 }
 
 impl Appearance {

@@ -18,7 +18,7 @@ use crate::checkpoint::write_atomic;
 use crate::config::{CameraConfig, PoseDistribution};
 use crate::{Error, Result};
 use material::Appearance;
-use render::{fit_radius, render, Rendered, RenderOptions, Scene};
+use render::{fit_radius, render, RenderOptions, Rendered, Scene};
 use rng::{object_seed, Rng, Stream};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -56,9 +56,10 @@ impl Category {
 impl std::str::FromStr for Category {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
-        Category::ALL.into_iter().find(|c| c.name() == s).ok_or_else(|| {
-            Error::Invalid(format!("unknown category '{s}', expected one of: chairs, tables"))
-        })
+        Category::ALL
+            .into_iter()
+            .find(|c| c.name() == s)
+            .ok_or_else(|| Error::Invalid(format!("unknown category '{s}', expected one of: chairs, tables")))
     }
 }
 
@@ -209,8 +210,10 @@ impl Metadata {
     pub fn load(dir: &Path) -> Result<Self> {
         let path = dir.join(METADATA_FILE);
         let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-        let meta: Metadata = serde_json::from_str(&text)
-            .map_err(|e| Error::Data { path: path.clone(), reason: format!("not a gdrf synthetic dataset description: {e}") })?;
+        let meta: Metadata = serde_json::from_str(&text).map_err(|e| Error::Data {
+            path: path.clone(),
+            reason: format!("not a gdrf synthetic dataset description: {e}"),
+        })?;
         if meta.format_version != FORMAT_VERSION {
             return Err(Error::Data {
                 path,
@@ -223,9 +226,10 @@ impl Metadata {
     /// The first view of object `i`.
     pub fn object(&self, i: usize) -> Result<&ImageRecord> {
         let objects = self.images.last().map_or(0, |r| r.object + 1);
-        self.images.iter().find(|r| r.object == i && r.view == 0).ok_or_else(|| {
-            Error::Invalid(format!("object {i} does not exist; this dataset has objects 0..{objects}"))
-        })
+        self.images
+            .iter()
+            .find(|r| r.object == i && r.view == 0)
+            .ok_or_else(|| Error::Invalid(format!("object {i} does not exist; this dataset has objects 0..{objects}")))
     }
 }
 
@@ -234,7 +238,8 @@ pub fn image_record(opts: &SynthOptions, index: usize) -> ImageRecord {
     let (object, view) = (index / opts.views_per_object, index % opts.views_per_object);
     let seed = object_seed(opts.seed, object as u64);
     let (shape, appearance) = sample_object(opts.category, seed);
-    let split = if Rng::new(seed, Stream::Split).unit() < opts.held_out_fraction { Split::HeldOut } else { Split::Train };
+    let split =
+        if Rng::new(seed, Stream::Split).unit() < opts.held_out_fraction { Split::HeldOut } else { Split::Train };
     let (pitch, yaw) = sample_pose(&opts.camera, &mut Rng::new(object_seed(seed, view as u64), Stream::Pose));
     ImageRecord { file: format!("images/{index:06}.png"), object, view, seed, split, pitch, yaw, shape, appearance }
 }
@@ -309,10 +314,8 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
         Ok(rec)
     })?;
     remove_stale_images(&images_dir, &records)?;
-    let poses: BTreeMap<&str, serde_json::Value> = records
-        .iter()
-        .map(|r| (r.file.as_str(), serde_json::json!({ "phi": r.pitch, "theta": r.yaw })))
-        .collect();
+    let poses: BTreeMap<&str, serde_json::Value> =
+        records.iter().map(|r| (r.file.as_str(), serde_json::json!({ "phi": r.pitch, "theta": r.yaw }))).collect();
     write_json(&dir.join(super::layouts::CAMERA_PARAM_FILE), &poses)?;
     let meta = Metadata {
         format_version: FORMAT_VERSION,
@@ -331,8 +334,7 @@ fn remove_stale_images(images_dir: &Path, records: &[ImageRecord]) -> Result<()>
         let path = path.to_path_buf();
         move |source| Error::Io { path, source }
     };
-    let keep: std::collections::HashSet<&str> =
-        records.iter().filter_map(|r| r.file.strip_prefix("images/")).collect();
+    let keep: std::collections::HashSet<&str> = records.iter().filter_map(|r| r.file.strip_prefix("images/")).collect();
     for entry in std::fs::read_dir(images_dir).map_err(io(images_dir))? {
         let path = entry.map_err(io(images_dir))?.path();
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();

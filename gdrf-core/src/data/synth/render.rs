@@ -53,12 +53,12 @@ impl Scene {
             return Err(Error::Invalid("a scene needs at least one primitive and a positive radius".into()));
         }
         let boxes: Vec<(V3, V3)> = geometry.prims.iter().map(Prim::aabb).collect();
-        let lo = boxes.iter().fold(v3(f32::MAX, f32::MAX, f32::MAX), |a, (l, _)| {
-            v3(a.x.min(l.x), a.y.min(l.y), a.z.min(l.z))
-        });
-        let hi = boxes.iter().fold(v3(f32::MIN, f32::MIN, f32::MIN), |a, (_, h)| {
-            v3(a.x.max(h.x), a.y.max(h.y), a.z.max(h.z))
-        });
+        let lo = boxes
+            .iter()
+            .fold(v3(f32::MAX, f32::MAX, f32::MAX), |a, (l, _)| v3(a.x.min(l.x), a.y.min(l.y), a.z.min(l.z)));
+        let hi = boxes
+            .iter()
+            .fold(v3(f32::MIN, f32::MIN, f32::MIN), |a, (_, h)| v3(a.x.max(h.x), a.y.max(h.y), a.z.max(h.z)));
         let centre = (lo + hi) * 0.5;
         // Farthest AABB corner of any primitive from the centre.
         let extent = boxes
@@ -321,7 +321,8 @@ pub fn render(scene: &Scene, pitch: f64, yaw: f64, opts: &RenderOptions) -> Resu
                     } else {
                         1.0
                     };
-                    let shade = (AMBIENT * (0.8 + 0.2 * n.y) + KEY * key * shadow + FILL * (-n.dot(d)).max(0.0)).min(1.0);
+                    let shade =
+                        (AMBIENT * (0.8 + 0.2 * n.y) + KEY * key * shadow + FILL * (-n.dot(d)).max(0.0)).min(1.0);
                     let albedo = scene.albedo(prim, p);
                     for (c, a) in colour.iter_mut().zip(albedo) {
                         *c += a * shade;
@@ -408,7 +409,12 @@ mod tests {
 
     #[test]
     fn straight_alpha_composites_back_to_the_rendered_colour() {
-        let prims = vec![Prim::new(Shape::RoundBox { half: v3(0.2, 0.1, 0.15), round: 0.02 }, Rot::about_y(0.4), V3::default(), 2)];
+        let prims = vec![Prim::new(
+            Shape::RoundBox { half: v3(0.2, 0.1, 0.15), round: 0.02 },
+            Rot::about_y(0.4),
+            V3::default(),
+            2,
+        )];
         let frames = [(Rot::IDENTITY, V3::default()); PARTS];
         let scene = Scene::new(&Geometry { prims, frames }, &test_appearance(), 0.38).unwrap();
         let opts = RenderOptions { resolution: 32, supersample: 3, fov_deg: 50.0, shadows: true };

@@ -119,12 +119,24 @@ impl Rot {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Shape {
     /// Box with half extents `half`, edges rounded by `round` (≤ the smallest half extent).
-    RoundBox { half: V3, round: f32 },
+    RoundBox {
+        half: V3,
+        round: f32,
+    },
     /// Cylinder along local y: radius, half height, edges rounded by `round`.
-    Cylinder { radius: f32, half_height: f32, round: f32 },
+    Cylinder {
+        radius: f32,
+        half_height: f32,
+        round: f32,
+    },
     /// Segment from (0, −half_length, 0) to (0, half_length, 0) swept by a sphere of `radius`.
-    Capsule { half_length: f32, radius: f32 },
-    Sphere { radius: f32 },
+    Capsule {
+        half_length: f32,
+        radius: f32,
+    },
+    Sphere {
+        radius: f32,
+    },
 }
 
 impl Shape {
@@ -208,9 +220,8 @@ impl Prim {
     pub fn aabb(&self) -> (V3, V3) {
         let h = self.shape.local_half_extents();
         // |R^T| · h: the extent of the rotated box along each world axis.
-        let col = |i: usize| -> f32 {
-            self.rot.rows.iter().zip([h.x, h.y, h.z]).map(|(r, e)| r.get(i).abs() * e).sum()
-        };
+        let col =
+            |i: usize| -> f32 { self.rot.rows.iter().zip([h.x, h.y, h.z]).map(|(r, e)| r.get(i).abs() * e).sum() };
         let e = v3(col(0), col(1), col(2));
         (self.pos - e, self.pos + e)
     }
@@ -275,14 +286,30 @@ mod tests {
         let b = Prim::new(Shape::RoundBox { half: v3(0.1, 0.2, 0.05), round: 0.01 }, Rot::IDENTITY, V3::default(), 0);
         assert!((b.sdf(v3(0.3, 0.0, 0.0)) - 0.2).abs() < 1e-6);
         assert!((b.sdf(v3(0.0, 0.0, 0.0)) + 0.05).abs() < 1e-6);
-        let c = Prim::new(Shape::Cylinder { radius: 0.1, half_height: 0.2, round: 0.0 }, Rot::IDENTITY, v3(0.0, 1.0, 0.0), 0);
+        let c = Prim::new(
+            Shape::Cylinder { radius: 0.1, half_height: 0.2, round: 0.0 },
+            Rot::IDENTITY,
+            v3(0.0, 1.0, 0.0),
+            0,
+        );
         assert!((c.sdf(v3(0.0, 1.5, 0.0)) - 0.3).abs() < 1e-6);
         assert!((c.sdf(v3(0.4, 1.0, 0.0)) - 0.3).abs() < 1e-6);
         let r = rod(v3(0.0, 0.0, 0.0), v3(1.0, 0.0, 0.0), 0.1, 0);
         assert!((r.sdf(v3(0.5, 0.3, 0.0)) - 0.2).abs() < 1e-6);
         assert!((r.sdf(v3(1.3, 0.0, 0.0)) - 0.2).abs() < 1e-6);
         let t = beam(v3(0.0, 0.0, 0.0), v3(0.2, 0.3, 0.1), 0.02, 0.03, None, 0);
-        for p in [b, c, r, t, Prim::new(Shape::Sphere { radius: 0.2 }, Rot::about_x(0.3).within(&Rot::about_y(1.0)), v3(0.1, 0.0, 0.0), 0)] {
+        for p in [
+            b,
+            c,
+            r,
+            t,
+            Prim::new(
+                Shape::Sphere { radius: 0.2 },
+                Rot::about_x(0.3).within(&Rot::about_y(1.0)),
+                v3(0.1, 0.0, 0.0),
+                0,
+            ),
+        ] {
             check_lipschitz(&p);
         }
     }

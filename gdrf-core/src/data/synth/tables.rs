@@ -36,9 +36,15 @@ pub struct TableParams {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum TableLegs {
-    Four { inset: f32, splay: f32, round: bool },
+    Four {
+        inset: f32,
+        splay: f32,
+        round: bool,
+    },
     /// A central column on `feet` feet (0 = a disc base).
-    Pedestal { feet: u32 },
+    Pedestal {
+        feet: u32,
+    },
     /// An upright with a foot at each end (x = ±), joined by a stretcher when `shelf`.
     Trestle,
     /// Solid side panels at each end.
@@ -99,8 +105,14 @@ impl TableParams {
                         let mid = (a + b) * 0.5;
                         let len = (b - a).length();
                         let along_x = (b - a).x.abs() > 1e-6;
-                        let half = if along_x { v3(len / 2.0, ah / 2.0, 0.3 * m) } else { v3(0.3 * m, ah / 2.0, len / 2.0) };
-                        prims.push(Prim::new(Shape::RoundBox { half, round: 0.005 }, Rot::IDENTITY, v3(mid.x, yb - ah / 2.0, mid.z), APRON));
+                        let half =
+                            if along_x { v3(len / 2.0, ah / 2.0, 0.3 * m) } else { v3(0.3 * m, ah / 2.0, len / 2.0) };
+                        prims.push(Prim::new(
+                            Shape::RoundBox { half, round: 0.005 },
+                            Rot::IDENTITY,
+                            v3(mid.x, yb - ah / 2.0, mid.z),
+                            APRON,
+                        ));
                     }
                 }
                 if self.shelf {
@@ -116,14 +128,31 @@ impl TableParams {
             }
             TableLegs::Pedestal { feet } => {
                 let col = m.max(0.05);
-                prims.push(Prim::new(Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 }, Rot::IDENTITY, v3(0.0, yb / 2.0, 0.0), LEGS));
+                prims.push(Prim::new(
+                    Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 },
+                    Rot::IDENTITY,
+                    v3(0.0, yb / 2.0, 0.0),
+                    LEGS,
+                ));
                 let reach = 0.7 * ex.min(ez).max(0.25);
                 if feet == 0 {
-                    prims.push(Prim::new(Shape::Cylinder { radius: reach, half_height: 0.015, round: 0.01 }, Rot::IDENTITY, v3(0.0, 0.015, 0.0), APRON));
+                    prims.push(Prim::new(
+                        Shape::Cylinder { radius: reach, half_height: 0.015, round: 0.01 },
+                        Rot::IDENTITY,
+                        v3(0.0, 0.015, 0.0),
+                        APRON,
+                    ));
                 } else {
                     for i in 0..feet {
                         let (s, c) = (TAU * (i as f32 + 0.5) / feet as f32).sin_cos();
-                        prims.push(beam(v3(0.0, 0.04, 0.0), v3(reach * c, 0.02, reach * s), 0.025, 0.02, Some(v3(-s, 0.0, c)), APRON));
+                        prims.push(beam(
+                            v3(0.0, 0.04, 0.0),
+                            v3(reach * c, 0.02, reach * s),
+                            0.025,
+                            0.02,
+                            Some(v3(-s, 0.0, c)),
+                            APRON,
+                        ));
                     }
                 }
             }
@@ -131,11 +160,26 @@ impl TableParams {
                 let x = ex - 1.5 * m;
                 for s in [-1.0, 1.0] {
                     prims.push(beam(v3(s * x, 0.0, 0.0), v3(s * x, yb, 0.0), m / 2.0, 1.5 * m, None, LEGS));
-                    prims.push(Prim::new(Shape::RoundBox { half: v3(m / 2.0, m / 2.0, 0.85 * ez), round: 0.01 }, Rot::IDENTITY, v3(s * x, m / 2.0, 0.0), APRON));
-                    prims.push(Prim::new(Shape::RoundBox { half: v3(m / 2.0, m / 2.0, 0.85 * ez), round: 0.01 }, Rot::IDENTITY, v3(s * x, yb - m / 2.0, 0.0), APRON));
+                    prims.push(Prim::new(
+                        Shape::RoundBox { half: v3(m / 2.0, m / 2.0, 0.85 * ez), round: 0.01 },
+                        Rot::IDENTITY,
+                        v3(s * x, m / 2.0, 0.0),
+                        APRON,
+                    ));
+                    prims.push(Prim::new(
+                        Shape::RoundBox { half: v3(m / 2.0, m / 2.0, 0.85 * ez), round: 0.01 },
+                        Rot::IDENTITY,
+                        v3(s * x, yb - m / 2.0, 0.0),
+                        APRON,
+                    ));
                 }
                 if self.shelf {
-                    prims.push(Prim::new(Shape::RoundBox { half: v3(x, m / 2.0, m / 2.0), round: 0.01 }, Rot::IDENTITY, v3(0.0, 0.35 * yb, 0.0), SHELF));
+                    prims.push(Prim::new(
+                        Shape::RoundBox { half: v3(x, m / 2.0, m / 2.0), round: 0.01 },
+                        Rot::IDENTITY,
+                        v3(0.0, 0.35 * yb, 0.0),
+                        SHELF,
+                    ));
                 }
             }
             TableLegs::Panels => {
@@ -149,7 +193,12 @@ impl TableParams {
                     ));
                 }
                 if self.shelf {
-                    prims.push(Prim::new(Shape::RoundBox { half: v3(x, 0.06, 0.015), round: 0.008 }, Rot::IDENTITY, v3(0.0, 0.5 * yb, -0.6 * ez), SHELF));
+                    prims.push(Prim::new(
+                        Shape::RoundBox { half: v3(x, 0.06, 0.015), round: 0.008 },
+                        Rot::IDENTITY,
+                        v3(0.0, 0.5 * yb, -0.6 * ez),
+                        SHELF,
+                    ));
                 }
             }
         }
