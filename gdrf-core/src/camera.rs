@@ -69,6 +69,18 @@ impl Poses {
     pub fn narrow(&self, start: i64, len: i64) -> Self {
         Self { pitch: self.pitch.narrow(0, start, len), yaw: self.yaw.narrow(0, start, len) }
     }
+
+    /// Pose 2k repeated at 2k + 1 (see [`rows_in_pairs`]).
+    pub fn in_pairs(&self) -> Self {
+        Self { pitch: rows_in_pairs(&self.pitch), yaw: rows_in_pairs(&self.yaw) }
+    }
+}
+
+/// Row 2k of `t` repeated at row 2k + 1 (a last unpaired row stays): pairs of images that
+/// differ only by their codes. Each row is still a draw from its distribution.
+pub fn rows_in_pairs(t: &Tensor) -> Tensor {
+    let idx: Vec<i64> = (0..t.size()[0]).map(|i| i & !1).collect();
+    t.index_select(0, &Tensor::from_slice(&idx).to_device(t.device()))
 }
 
 /// Camera centres on the sphere of `radius`: `(B, 3)` = r·(sin φ cos θ, cos φ, sin φ sin θ).
@@ -92,6 +104,14 @@ pub fn cam2world_rotation(poses: &Poses) -> Tensor {
     Tensor::stack(&[-left, up, -forward], 2)
 }
 
+/// Cam-to-world matrices `(B, 4, 4)` of `poses`, the camera at `radius` from the origin.
+pub fn cam2world(poses: &Poses, radius: f64) -> Tensor {
+    let b = poses.len();
+    let top = Tensor::cat(&[cam2world_rotation(poses), camera_origins(poses, radius).unsqueeze(2)], 2);
+    let bottom = Tensor::from_slice(&[0.0, 0.0, 0.0, 1.0]).to_kind(top.kind()).to_device(top.device());
+    Tensor::cat(&[top, bottom.view([1, 1, 4]).expand([b, 1, 4], false)], 1)
+}
+
 /// Unit vectors along the last axis; a zero vector stays zero (no 0/0).
 pub fn normalize(v: &Tensor) -> Tensor {
     v / v.square().sum_dim_intlist(-1, true, v.kind()).sqrt().clamp_min(1e-12)
@@ -111,11 +131,60 @@ pub fn pixel_directions(res: i64, fov_deg: f64, kind: Kind, device: Device) -> T
     normalize(&d)
 }
 
-/// World-space rays: origins and unit directions, both `(B, R, 3)`.
+/// Pinhole intrinsics in pixels: focal lengths and principal point, with pixel centres at
+/// (u + ½, v + ½), x right, y down in the image (the usual photo convention); the camera
+/// looks along its −z axis (OpenGL), as the poses' cam-to-world matrices do.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: i64,
+    pub height: i64,
+}
+
+impl Intrinsics {
+    /// The intrinsics of [`pixel_directions`]: a square `res` image whose edge pixel
+    /// *centres* lie on the field-of-view boundary (the release's convention).
+    pub fn from_fov(res: i64, fov_deg: f64) -> Self {
+        let f = (res - 1).max(1) as f64 / (2.0 * (fov_deg.to_radians() / 2.0).tan());
+        Self { fx: f, fy: f, cx: res as f64 / 2.0, cy: res as f64 / 2.0, width: res, height: res }
+    }
+
+    /// Checks that the focal lengths are positive and finite, the size positive and the
+    /// principal point finite.
+    pub fn validate(&self) -> crate::Result<()> {
+        let focal = self.fx > 0.0 && self.fy > 0.0 && self.fx.is_finite() && self.fy.is_finite();
+        let centre = self.cx.is_finite() && self.cy.is_finite();
+        if !(focal && centre && self.width >= 1 && self.height >= 1) {
+            return Err(crate::Error::Invalid(format!(
+                "camera intrinsics {self:?}: expected positive finite focal lengths, a finite principal point and a positive size"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Camera-space unit directions `(H·W, 3)`, row-major.
+    pub fn directions(&self, kind: Kind, device: Device) -> Tensor {
+        let (w, h) = (self.width, self.height);
+        let u = Tensor::arange(w, (kind, device)) + 0.5;
+        let v = Tensor::arange(h, (kind, device)) + 0.5;
+        let x = ((u - self.cx) / self.fx).view([1, w]).expand([h, w], false).reshape([-1]);
+        let y = (-(v - self.cy) / self.fy).view([h, 1]).expand([h, w], false).reshape([-1]);
+        normalize(&Tensor::stack(&[x, y, Tensor::full([h * w], -1.0, (kind, device))], 1))
+    }
+}
+
+/// World-space rays: origins and unit directions, both `(B, R, 3)`, and optionally each
+/// ray's own sampling interval.
 #[derive(Debug)]
 pub struct Rays {
     pub origins: Tensor,
     pub dirs: Tensor,
+    /// `(B, R, 2)` [near, far] of each ray's samples; `None`: the camera's ray range.
+    /// Rays with bounds also end on one sample at the camera's far end (see the renderer).
+    pub bounds: Option<Tensor>,
 }
 
 impl Rays {
@@ -131,7 +200,7 @@ impl Rays {
         let r = dirs_cam.size()[0];
         let dirs = dirs_cam.matmul(&rot.transpose(1, 2)); // (B, R, 3)
         let origins = origin.unsqueeze(1).expand([-1, r, 3], false);
-        Self { origins, dirs }
+        Self { origins, dirs, bounds: None }
     }
 
     /// Rays from camera-to-world matrices `(B, 4, 4)` (user-given cameras).
@@ -141,14 +210,53 @@ impl Rays {
         Self::from_rotation(&rot, &origin, dirs_cam)
     }
 
+    /// The rays of real cameras: pinhole `intrinsics` and cam-to-world matrices `(B, 4, 4)`
+    /// (OpenGL axes: x right, y up, looking along −z). Errors name a bad matrix shape or
+    /// non-finite entries.
+    pub fn from_camera(intrinsics: &Intrinsics, c2w: &Tensor) -> crate::Result<Self> {
+        intrinsics.validate()?;
+        if c2w.dim() != 3 || c2w.size()[1..] != [4, 4] {
+            return Err(crate::Error::Invalid(format!(
+                "cam-to-world matrices have shape {:?}, expected [B, 4, 4]",
+                c2w.size()
+            )));
+        }
+        if !bool::try_from(c2w.isfinite().all()).unwrap_or(false) {
+            return Err(crate::Error::Invalid("cam-to-world matrices have non-finite entries".into()));
+        }
+        Ok(Self::from_cam2world(c2w, &intrinsics.directions(c2w.kind(), c2w.device())))
+    }
+
+    /// The same rays sampled in `bounds: (B, R, 2)` = [near, far] each.
+    pub fn with_bounds(self, bounds: Tensor) -> Self {
+        Self { bounds: Some(bounds), ..self }
+    }
+
     /// Rays `[start, start+len)` of every image.
     pub fn narrow(&self, start: i64, len: i64) -> Self {
-        Self { origins: self.origins.narrow(1, start, len), dirs: self.dirs.narrow(1, start, len) }
+        Self {
+            origins: self.origins.narrow(1, start, len),
+            dirs: self.dirs.narrow(1, start, len),
+            bounds: self.bounds.as_ref().map(|b| b.narrow(1, start, len)),
+        }
     }
 
     /// Images `[start, start+len)`.
     pub fn narrow_batch(&self, start: i64, len: i64) -> Self {
-        Self { origins: self.origins.narrow(0, start, len), dirs: self.dirs.narrow(0, start, len) }
+        Self {
+            origins: self.origins.narrow(0, start, len),
+            dirs: self.dirs.narrow(0, start, len),
+            bounds: self.bounds.as_ref().map(|b| b.narrow(0, start, len)),
+        }
+    }
+
+    /// The rays `idx: (K,)` of a single image (B = 1), in that order.
+    pub fn select_rays(&self, idx: &Tensor) -> Self {
+        Self {
+            origins: self.origins.index_select(1, idx),
+            dirs: self.dirs.index_select(1, idx),
+            bounds: self.bounds.as_ref().map(|b| b.index_select(1, idx)),
+        }
     }
 
     pub fn num_rays(&self) -> i64 {
@@ -162,6 +270,36 @@ mod tests {
 
     fn max_abs(t: &Tensor) -> f64 {
         f64::try_from(t.abs().max()).unwrap()
+    }
+
+    #[test]
+    fn poses_in_pairs_repeat_the_even_ones() {
+        let p = Poses::from_angles(
+            &[(0.1, 1.0), (0.2, 2.0), (0.3, 3.0), (0.4, 4.0), (0.5, 5.0)],
+            Kind::Double,
+            Device::Cpu,
+        );
+        let q = p.in_pairs();
+        assert_eq!(Vec::<f64>::try_from(q.pitch.view([-1])).unwrap(), [0.1, 0.1, 0.3, 0.3, 0.5]);
+        assert_eq!(Vec::<f64>::try_from(q.yaw.view([-1])).unwrap(), [1.0, 1.0, 3.0, 3.0, 5.0]);
+    }
+
+    #[test]
+    fn a_real_camera_gives_the_rays_of_the_equivalent_pose() {
+        let poses = Poses::from_angles(&[(1.1, 0.3), (0.4, -2.0), (PI / 2.0, PI)], Kind::Double, Device::Cpu);
+        let c2w = cam2world(&poses, 1.0);
+        for (res, fov) in [(2, 30.0), (5, 50.0), (16, 12.0)] {
+            let a = Rays::from_poses(&poses, res, fov);
+            let b = Rays::from_camera(&Intrinsics::from_fov(res, fov), &c2w).unwrap();
+            assert!(
+                max_abs(&(&a.dirs - &b.dirs)) < 1e-12 && max_abs(&(&a.origins - &b.origins)) < 1e-12,
+                "{res} {fov}"
+            );
+        }
+        let k = Intrinsics::from_fov(4, 30.0);
+        assert!(Rays::from_camera(&k, &Tensor::zeros([2, 3, 4], (Kind::Double, Device::Cpu))).is_err());
+        assert!(Rays::from_camera(&Intrinsics { fx: 0.0, ..k }, &c2w).is_err());
+        assert!(Rays::from_camera(&k, &(c2w * f64::NAN)).is_err());
     }
 
     #[test]

@@ -52,10 +52,46 @@ pub fn latent_loss(pred: &Tensor, z: &Tensor) -> Tensor {
     pred.narrow(1, 0, z.size()[1]).mse_loss(z, tch::Reduction::Mean)
 }
 
+/// A capped mode-seeking term (MSGAN, Mao et al. 2019, in DSGAN's clamped form): for the
+/// pairs of consecutive images (2k, 2k+1), which the caller renders at the same pose,
+/// `relu(cap − mean|I_2k − I_2k+1| / mean|z_2k − z_2k+1|)`, averaged over the pairs.
+/// Zero once two codes' images differ by `cap` per unit of code distance, so it pushes a
+/// collapsed generator apart without rewarding difference beyond that.
+/// `img: (B, 3, H, W)`, `z: (B, Z)`, B even.
+pub fn mode_seeking(img: &Tensor, z: &Tensor, cap: f64) -> Tensor {
+    let b = img.size()[0];
+    let pairs = |t: &Tensor| t.reshape([b / 2, 2, -1]);
+    let (i, c) = (pairs(img), pairs(&z.to_kind(img.kind())));
+    let d = |t: &Tensor| (t.select(1, 0) - t.select(1, 1)).abs().mean_dim(1, false, t.kind());
+    // A code distance of 0 (two equal codes) has no direction to push: its pair is skipped.
+    let ratio = d(&i) / d(&c).clamp_min(1e-8);
+    (-ratio + cap).relu().mean(img.kind())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use tch::Kind;
+
+    #[test]
+    fn mode_seeking_on_known_pairs() {
+        let o = (Kind::Double, tch::Device::Cpu);
+        // Pair 0: images differ by 0.1 everywhere, codes by 1 → ratio 0.1, below the cap 0.25.
+        // Pair 1: images differ by 0.5, codes by 1 → ratio 0.5, above the cap: no loss.
+        let img = Tensor::zeros([4, 3, 2, 2], o);
+        let _ = img.get(1).fill_(0.1);
+        let _ = img.get(3).fill_(-0.5);
+        let z = Tensor::zeros([4, 3], o);
+        let _ = z.get(1).fill_(1.0);
+        let _ = z.get(3).fill_(-1.0);
+        let l = f64::try_from(mode_seeking(&img, &z, 0.25)).unwrap();
+        assert!((l - 0.15 / 2.0).abs() < 1e-12, "{l}");
+        // The gradient pushes the collapsed pair apart and leaves the other alone.
+        let img = img.set_requires_grad(true);
+        let g = Tensor::run_backward(&[mode_seeking(&img, &z, 0.25)], &[&img], false, false).remove(0);
+        assert!(f64::try_from(g.get(1).sum(Kind::Double)).unwrap() < 0.0);
+        assert_eq!(f64::try_from(g.narrow(0, 2, 2).abs().sum(Kind::Double)).unwrap(), 0.0);
+    }
 
     #[test]
     fn latent_loss_reads_the_first_entries_of_the_head() {

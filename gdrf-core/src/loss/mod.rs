@@ -27,6 +27,12 @@ pub struct LossConfig {
     pub pose_weight: f64,
     /// Weight of the latent-prediction loss (0 in the release).
     pub latent_weight: f64,
+    /// Weight of the capped mode-seeking term on the generator (0 in the release; see
+    /// [`gan::mode_seeking`]). When on, the generator's batch is rendered in pairs of codes
+    /// sharing a pose.
+    pub diversity_weight: f64,
+    /// Image difference per unit of code distance above which the mode-seeking term is 0.
+    pub diversity_cap: f64,
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
@@ -40,6 +46,8 @@ impl Default for LossConfig {
             r1_interval: 1,
             pose_weight: 15.0,
             latent_weight: 0.0,
+            diversity_weight: 0.0,
+            diversity_cap: 0.1,
             topk_interval: 2000.0,
             topk_floor: 0.6,
             reg: RegConfig::default(),
@@ -56,6 +64,18 @@ impl LossConfig {
             return Err(Error::Config(format!(
                 "loss.topk_interval {} must be positive and loss.topk_floor {} in [0, 1]",
                 self.topk_interval, self.topk_floor
+            )));
+        }
+        if !(self.diversity_weight >= 0.0 && self.diversity_weight.is_finite()) {
+            return Err(Error::Config(format!(
+                "loss.diversity_weight is {}, expected 0 (off) or a positive weight",
+                self.diversity_weight
+            )));
+        }
+        if !(self.diversity_cap > 0.0 && self.diversity_cap.is_finite()) {
+            return Err(Error::Config(format!(
+                "loss.diversity_cap is {}, expected a positive number",
+                self.diversity_cap
             )));
         }
         Ok(())
@@ -134,6 +154,32 @@ pub fn generator_adversarial(
     Ok(Losses { total, terms })
 }
 
+/// The generator's adversarial terms plus, when `diversity_weight` is on, the mode-seeking
+/// term on the rendered images `img: (B, 3, H, W)` (consecutive pairs share a pose).
+pub fn generator_image_terms(
+    fake: &DiscOutput,
+    img: &Tensor,
+    poses: &Tensor,
+    z: Option<&Tensor>,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
+    let mut l = generator_adversarial(fake, poses, z, at, cfg)?;
+    if let (true, Some(z)) = (cfg.diversity_weight != 0.0, z) {
+        let b = img.size()[0];
+        if b % 2 != 0 || z.size()[0] != b {
+            return Err(Error::Invalid(format!(
+                "the mode-seeking term needs an even batch of images with one code each, got {b} images and codes {:?}",
+                z.size()
+            )));
+        }
+        let d = gan::mode_seeking(img, z, cfg.diversity_cap);
+        l.total = l.total + &d * cfg.diversity_weight;
+        l.terms.push(("g_diversity", d));
+    }
+    Ok(l)
+}
+
 /// The weighted deformation regularisers (from [`Generator::regularisers`]) as a breakdown.
 ///
 /// [`Generator::regularisers`]: crate::Generator::regularisers
@@ -150,16 +196,18 @@ pub fn generator_regularisation(reg: RegTerms, cfg: &RegConfig) -> Losses {
     }
 }
 
-/// The generator's total: [`generator_adversarial`] + [`generator_regularisation`].
+/// The generator's total: [`generator_image_terms`] + [`generator_regularisation`].
+#[allow(clippy::too_many_arguments)]
 pub fn generator_loss(
     fake: &DiscOutput,
+    img: &Tensor,
     poses: &Tensor,
     z: Option<&Tensor>,
     reg: RegTerms,
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
-    Ok(generator_adversarial(fake, poses, z, at, cfg)?.merge(generator_regularisation(reg, &cfg.reg)))
+    Ok(generator_image_terms(fake, img, poses, z, at, cfg)?.merge(generator_regularisation(reg, &cfg.reg)))
 }
 
 /// The discriminator's loss from its verdicts on real images and on (detached) fakes:
@@ -263,7 +311,8 @@ mod tests {
         let c = |v: f64| Tensor::from(v);
         let reg = RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
         let cfg = LossConfig::default();
-        let l = generator_loss(&d, &poses, None, reg, Schedule { step: 0, alpha: 1.0 }, &cfg).unwrap();
+        let img = Tensor::zeros([2, 3, 4, 4], (Kind::Double, Device::Cpu));
+        let l = generator_loss(&d, &img, &poses, None, reg, Schedule { step: 0, alpha: 1.0 }, &cfg).unwrap();
         let adv = (Tensor::from_slice(&[-0.3f64, 1.0])).softplus().mean(Kind::Double).double_value(&[]);
         let pose = ((1.0 - 0.5f64.cos()) + (1.0 - 1.0f64.cos())) / 4.0;
         let want = adv + 15.0 * pose + 0.01 * 2.0 + 3.0 + 0.1 * 4.0 + 5.0 * 0.5;
@@ -273,5 +322,22 @@ mod tests {
         assert!(
             generator_adversarial(&d, &poses.narrow(0, 0, 1), None, Schedule { step: 0, alpha: 1.0 }, &cfg).is_err()
         );
+
+        // With the mode-seeking term on: two equal images of codes 2 apart in every entry
+        // add weight × cap (ratio 0).
+        let z = Tensor::from_slice(&[1.0f64, 1.0, -1.0, -1.0]).view([2, 2]);
+        let on = LossConfig { diversity_weight: 3.0, diversity_cap: 0.2, ..Default::default() };
+        let terms = |cfg: &LossConfig, img: &Tensor| {
+            generator_image_terms(&d, img, &poses, Some(&z), Schedule { step: 0, alpha: 1.0 }, cfg).unwrap()
+        };
+        let (with, without) = (terms(&on, &img), terms(&cfg, &img));
+        assert_eq!(f64::try_from(with.get("g_diversity").unwrap()).unwrap(), 0.2);
+        assert!((with.total.double_value(&[]) - without.total.double_value(&[]) - 0.6).abs() < 1e-12);
+        assert!(without.get("g_diversity").is_none());
+        let odd = Tensor::zeros([3, 3, 4, 4], (Kind::Double, Device::Cpu));
+        assert!(generator_image_terms(&d, &odd, &poses, Some(&z), Schedule { step: 0, alpha: 1.0 }, &on).is_err());
+        let e = LossConfig { diversity_weight: -1.0, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("loss.diversity_weight"), "{e}");
+        assert!(LossConfig { diversity_cap: 0.0, ..Default::default() }.validate().is_err());
     }
 }

@@ -411,6 +411,14 @@ impl TrainConfig {
                     st.batch_split
                 )));
             }
+            if self.loss.diversity_weight > 0.0 && (st.batch_size / st.batch_split) % 2 != 0 {
+                return Err(cfg_err(format!(
+                    "loss.diversity_weight is on but {} / {} is {}: the mode-seeking term needs an even number of images per chunk (pairs of codes)",
+                    key("batch_size"),
+                    key("batch_split"),
+                    st.batch_size / st.batch_split
+                )));
+            }
             if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
                 return Err(cfg_err(format!(
                     "{} is {}, expected a positive divisor of the {}² rays",
@@ -546,6 +554,7 @@ path = "data/x"
             ("[discriminator]\nminibatch_std_group = -1", "discriminator.minibatch_std_group"),
             ("[loss]\nlatent_weight = -1.0", "loss.latent_weight"),
             ("[generator]\nlatent_dim = 300\n[loss]\nlatent_weight = 1.0", "generator.latent_dim"),
+            ("[loss]\ndiversity_weight = -2.0", "loss.diversity_weight"),
             ("[eval]\ninterval = 100", "eval.probe"),
             ("[eval]\nnum = 1", "eval"),
         ];
@@ -559,6 +568,11 @@ path = "data/x"
         let bad_split = MIN.replace("batch_split = 2", "batch_split = 3");
         let e = TrainConfig::from_toml(&bad_split, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].batch_split"), "{e}");
+        // Stage 2 renders chunks of 4 / 2 = 2 images: pairs for the mode-seeking term; 4 / 4 is 1.
+        parse("[loss]\ndiversity_weight = 1.0").unwrap();
+        let odd = MIN.replace("batch_split = 2", "batch_split = 4") + "[loss]\ndiversity_weight = 1.0\n";
+        let e = TrainConfig::from_toml(&odd, Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("loss.diversity_weight") && e.contains("stages[2].batch_split"), "{e}");
         let unordered = MIN.replace("from_step = 200", "from_step = 50");
         let e = TrainConfig::from_toml(&unordered, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].from_step"), "{e}");

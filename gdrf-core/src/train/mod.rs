@@ -21,7 +21,7 @@ use crate::checkpoint::{self, Header};
 use crate::data::{self, Dataset};
 use crate::disc::Discriminator;
 use crate::loss::deform_reg::{reg_ray_count, select_samples};
-use crate::loss::{generator_adversarial, generator_regularisation, Losses, Schedule};
+use crate::loss::{generator_image_terms, generator_regularisation, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{Error, Generator, Result};
@@ -465,6 +465,14 @@ impl Trainer {
         let step = at.step;
         let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
         let (z, poses, noise) = self.fake_draws(stage, step, purposes);
+        // The mode-seeking term compares two codes' images at one pose, sampled at the same
+        // depths, so that their difference is the codes' alone.
+        let (poses, noise) = if self.cfg.loss.diversity_weight > 0.0 {
+            let pair = |t: &Option<Tensor>| t.as_ref().map(crate::camera::rows_in_pairs);
+            (poses.in_pairs(), Noise { jitter: pair(&noise.jitter), importance: pair(&noise.importance) })
+        } else {
+            (poses, noise)
+        };
         let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
         let reg_rays =
             Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
@@ -541,7 +549,7 @@ impl Trainer {
         })?;
         let img = img.detach().set_requires_grad(true);
         let d = self.disc.forward(&img, at.alpha)?;
-        let mut adv = generator_adversarial(&d, &target, Some(z), at, cfg)?;
+        let mut adv = generator_image_terms(&d, &img, &target, Some(z), at, cfg)?;
         adv.total = adv.total.g_mul_scalar(fault);
         let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
         // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.

@@ -37,7 +37,7 @@ pub fn generator_pass(
     let d = disc.forward(&img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, reg_rays);
     let reg = renderer.generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
-    generator_loss(&d, &fake.poses.stacked(), fake.z, reg, at, cfg)
+    generator_loss(&d, &img, &fake.poses.stacked(), fake.z, reg, at, cfg)
 }
 
 /// The discriminator's loss: fakes rendered without gradients, D on the reals (made to
