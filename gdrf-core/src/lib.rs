@@ -9,6 +9,7 @@
 //! Conventions follow the authors' release (see the reference specification): poses are
 //! (pitch φ from +y, yaw θ), cameras sit on the unit sphere and look at the origin with
 //! OpenGL axes, images are `(B, 3, H, W)` in `[-1, 1]`.
+pub mod bench;
 pub mod camera;
 pub mod checkpoint;
 pub mod config;

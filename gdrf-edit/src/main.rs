@@ -1,5 +1,7 @@
 //! gdrf-edit: render a GDRF generator from any viewpoint, with shape and appearance
 //! taken from different codes.
+mod bench;
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use gdrf_core::camera::Poses;
@@ -25,6 +27,12 @@ enum Command {
     /// Render images for latent seeds from one or more viewpoints into a PNG grid
     /// (one row per seed, one column per view).
     Render(RenderArgs),
+    /// Renderer benchmark: milliseconds per image against error (PSNR, max error, opacity
+    /// error against a dense reference) for each configuration — the release's sampler,
+    /// fewer samples, density-first shading, the occupancy grid and their combinations — on
+    /// the trained model and on an analytic scene, with the PyTorch reference timed in the
+    /// same run. Writes render.json, render.png (the Pareto plot) and render.md.
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -105,6 +113,7 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => render(a),
+        Command::Bench(a) => bench::bench(a),
     }
 }
 

@@ -194,7 +194,13 @@ fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<Verd
             verdicts.push((shape_ok, colour_ok));
         }
     }
-    let rate = |h: usize, n: usize| if n == 0 { f64::NAN } else { h as f64 / n as f64 };
+    let rate = |h: usize, n: usize| {
+        if n == 0 {
+            f64::NAN
+        } else {
+            h as f64 / n as f64
+        }
+    };
     (rate(s_hit, s_n), rate(a_hit, a_n), verdicts)
 }
 
@@ -506,7 +512,9 @@ pub fn evaluate(
         dataset: dataset.display().to_string(),
         features: match &opts.features {
             FeatureKind::Efficientnet => "efficientnet-lite0 pooled (1280-d, 224², ImageNet)".into(),
-            FeatureKind::Inception(p) => format!("inception-v3 pool3 (2048-d, 299², {})", p.display()),
+            FeatureKind::Inception(p) => {
+                format!("inception-v3 pool3 (2048-d, 299², {})", p.display())
+            }
         },
         images: opts.num,
         resolution: ev.resolution,
@@ -669,8 +677,7 @@ mod tests {
         };
         let img = |r: f64, b: f64| {
             let t = Tensor::ones([1, 3, 4, 4], (Kind::Float, Device::Cpu));
-            let _ = t
-                .narrow(2, 1, 2)
+            t.narrow(2, 1, 2)
                 .narrow(3, 1, 2)
                 .copy_(&Tensor::from_slice(&[r as f32, -1.0, b as f32]).view([1, 3, 1, 1]).expand([1, 3, 2, 2], false));
             t

@@ -1,10 +1,12 @@
 //! Rendering: samplers place depths on rays, composite integrates along them, the
 //! renderer ties field queries, sampling and integration together.
 pub mod composite;
+pub mod occupancy;
 pub mod renderer;
 pub mod samplers;
 pub mod staged;
 
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
+pub use occupancy::{GridConfig, OccupancyGrid, RayColours};
 pub use renderer::{assemble_image, DensitySamples, Image, Noise, RenderedRays, Renderer};
 pub use staged::ShapeSide;

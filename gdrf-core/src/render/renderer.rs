@@ -1,10 +1,12 @@
 //! The GDRF renderer: coarse pass, importance pass, merge, integrate — for training
 //! batches (with gradients), patches, and chunked inference in bounded memory.
 use super::composite::{composite, weights_from_density, CompositeOptions};
-use super::samplers::{gather_samples, importance_depths, sort_depths, stratified_depths};
+use super::occupancy::{OccupancyGrid, RayColours};
+use super::samplers::{gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in};
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::{FieldOptions, Generator, Latents};
+use crate::field::RadianceField;
 use crate::nn::film::Film;
 use crate::{Error, Result};
 use tch::Tensor;
@@ -99,16 +101,17 @@ pub struct Image {
     pub opacity: Tensor,
 }
 
-/// Renders a generator with a camera and sampling configuration.
-pub struct Renderer<'a> {
-    pub generator: &'a Generator,
+/// Renders a radiance field (the generator by default) with a camera and sampling
+/// configuration.
+pub struct Renderer<'a, F: RadianceField = Generator> {
+    pub generator: &'a F,
     pub camera: &'a CameraConfig,
     pub config: &'a RenderConfig,
     pub field: FieldOptions,
 }
 
-impl<'a> Renderer<'a> {
-    pub fn new(generator: &'a Generator, camera: &'a CameraConfig, config: &'a RenderConfig) -> Result<Self> {
+impl<'a, F: RadianceField> Renderer<'a, F> {
+    pub fn new(generator: &'a F, camera: &'a CameraConfig, config: &'a RenderConfig) -> Result<Self> {
         camera.validate()?;
         config.validate()?;
         Ok(Self { generator, camera, config, field: FieldOptions::default() })
@@ -157,10 +160,20 @@ impl<'a> Renderer<'a> {
                 Some(&drawn)
             }
         };
-        let z_c = stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts);
-        let coarse = gen.density(&at(&z_c), shape, self.field);
-        let sigma_c = coarse.sigma.view([b, r, n, 1]);
-        let feature_c = coarse.feature.view([b, r, n, -1]);
+        let z_c = match &rays.bounds {
+            None => stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts),
+            Some(nf) => {
+                // The release's last interval is infinite (delta_final): whatever density a
+                // ray meets at the camera's far end absorbs its remaining light. Rays with
+                // their own bounds keep that sample, so that they end as the reference's do.
+                let end = nf.narrow(2, 1, 1).clamp_min(self.camera.ray_end);
+                Tensor::cat(&[stratified_in(nf, n, jitter), end], 2)
+            }
+        };
+        let nc = z_c.size()[2];
+        let (sigma_c, feature_c) = gen.sigma_feature(&at(&z_c), shape, self.field);
+        let sigma_c = sigma_c.view([b, r, nc, 1]);
+        let feature_c = feature_c.view([b, r, nc, -1]);
         let (z, sigma, features) = if cfg.hierarchical {
             let z_f = tch::no_grad(|| {
                 let w = weights_from_density(&sigma_c, &z_c.unsqueeze(-1), cfg.delta_final);
@@ -168,14 +181,14 @@ impl<'a> Renderer<'a> {
                     Some(u) => u.shallow_clone(),
                     None => Tensor::rand([b, r, n], opts),
                 };
-                importance_depths(&z_c.reshape([b * r, n]), &w.reshape([b * r, n]), &u.reshape([b * r, n]))
+                importance_depths(&z_c.reshape([b * r, nc]), &w.reshape([b * r, nc]), &u.reshape([b * r, n]))
                     .view([b, r, n])
             });
-            let fine = gen.density(&at(&z_f), shape, self.field);
+            let (sigma_f, feature_f) = gen.sigma_feature(&at(&z_f), shape, self.field);
             (
                 Tensor::cat(&[z_f, z_c], 2),
-                Tensor::cat(&[fine.sigma.view([b, r, n, 1]), sigma_c], 2),
-                vec![fine.feature.view([b, r, n, -1]), feature_c],
+                Tensor::cat(&[sigma_f.view([b, r, n, 1]), sigma_c], 2),
+                vec![feature_f.view([b, r, n, -1]), feature_c],
             )
         } else {
             (z_c, sigma_c, vec![feature_c])
@@ -203,7 +216,7 @@ impl<'a> Renderer<'a> {
                 let s = f.size();
                 let (b, r, n) = (s[0], s[1], s[2]);
                 let dirs = self.sample_dirs(&rays.dirs, n);
-                self.generator.color(&f.reshape([b, r * n, -1]), &dirs, &latents.appearance).view([b, r, n, 3])
+                self.generator.radiance(&f.reshape([b, r * n, -1]), &dirs, &latents.appearance).view([b, r, n, 3])
             })
             .collect();
         let rgb = gather_samples(&Tensor::cat(&rgb, 2), &d.order);
@@ -222,26 +235,57 @@ impl<'a> Renderer<'a> {
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so
     /// any resolution fits in bounded memory.
     pub fn render_image(&self, latents: &Latents, poses: &Poses, res: i64, noise: &Noise) -> Result<Image> {
+        Ok(self.render_image_in_grids(latents, poses, res, noise, &[])?.0)
+    }
+
+    /// [`Self::render_image`], each image inside its shape's occupancy grid when `grids`
+    /// holds one per image (empty: no grid). Also returns the density and colour queries
+    /// spent.
+    pub fn render_image_in_grids(
+        &self,
+        latents: &Latents,
+        poses: &Poses,
+        res: i64,
+        noise: &Noise,
+        grids: &[&OccupancyGrid],
+    ) -> Result<(Image, (i64, i64))> {
         let rays = Rays::from_poses(poses, res, self.camera.fov_deg);
         let (b, r) = (poses.len(), res * res);
-        let (mut pix, mut depth, mut opacity) = (Vec::new(), Vec::new(), Vec::new());
+        if !grids.is_empty() && grids.len() as i64 != b {
+            return Err(Error::Invalid(format!("{} occupancy grids for {b} images", grids.len())));
+        }
+        let mut parts = Vec::new();
         tch::no_grad(|| -> Result<()> {
             for i in 0..b {
                 let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
-                let (p, d, o) = if self.config.shade_min_weight > 0.0 {
+                parts.push(if let Some(grid) = grids.get(i as usize) {
+                    self.render_in_grid(&lat, &rays, grid, &noise)?
+                } else if self.config.shade_min_weight > 0.0 {
                     self.render_staged_chunked(&lat, &rays, &noise)?
                 } else {
                     let out = self.render_rays_chunked(&lat, &rays, &noise)?;
-                    (out.pixel, out.depth, out.opacity)
-                };
-                pix.push(p);
-                depth.push(d);
-                opacity.push(o);
+                    let evals = out.z.size()[1] * out.z.size()[2];
+                    RayColours {
+                        pixel: out.pixel,
+                        depth: out.depth,
+                        opacity: out.opacity,
+                        density_evals: evals,
+                        colour_evals: evals,
+                    }
+                });
             }
             Ok(())
         })?;
-        let to_image = |parts: &[Tensor], c: i64| Tensor::cat(parts, 0).permute([0, 2, 1]).reshape([b, c, res, res]);
-        Ok(Image { rgb: to_image(&pix, 3) * 2.0 - 1.0, depth: to_image(&depth, 1), opacity: to_image(&opacity, 1) })
+        let evals = (parts.iter().map(|p| p.density_evals).sum(), parts.iter().map(|p| p.colour_evals).sum());
+        let to_image = |f: &dyn Fn(&RayColours) -> &Tensor, c: i64| {
+            Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0).permute([0, 2, 1]).reshape([b, c, res, res])
+        };
+        let image = Image {
+            rgb: to_image(&|p| &p.pixel, 3) * 2.0 - 1.0,
+            depth: to_image(&|p| &p.depth, 1),
+            opacity: to_image(&|p| &p.opacity, 1),
+        };
+        Ok((image, evals))
     }
 
     /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
@@ -269,10 +313,10 @@ impl<'a> Renderer<'a> {
         self.in_chunks(rays, s, |start, len| {
             let (rays, z) = (rays.narrow(start, len), z.narrow(1, start, len));
             let x = (rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * z.unsqueeze(-1)).reshape([b, len * s, 3]);
-            let d = self.generator.density(&x, &latents.shape, self.field);
+            let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);
             let dirs = self.sample_dirs(&rays.dirs, s);
-            let rgb = self.generator.color(&d.feature, &dirs, &latents.appearance).view([b, len, s, 3]);
-            let c = composite(&rgb, &d.sigma.view([b, len, s, 1]), &z.unsqueeze(-1), &self.composite_options());
+            let rgb = self.generator.radiance(&feature, &dirs, &latents.appearance).view([b, len, s, 3]);
+            let c = composite(&rgb, &sigma.view([b, len, s, 1]), &z.unsqueeze(-1), &self.composite_options());
             Ok(RenderedRays {
                 pixel: c.pixel,
                 depth: c.depth,

@@ -22,6 +22,19 @@ pub fn stratified_depths(
     }
 }
 
+/// Coarse depths `(B, R, N)` within each ray's own `bounds: (B, R, 2)` = [near, far]:
+/// `near + (far − near)·k/(N − 1)`, jittered by `(u − ½)` of a bin when `jitter` is given.
+pub fn stratified_in(bounds: &Tensor, n: i64, jitter: Option<&Tensor>) -> Tensor {
+    let (near, far) = (bounds.narrow(2, 0, 1), bounds.narrow(2, 1, 1));
+    let span = &far - &near;
+    let t = Tensor::linspace(0.0, 1.0, n, (bounds.kind(), bounds.device())).view([1, 1, n]);
+    let z = &near + &span * t;
+    match jitter {
+        Some(u) if n > 1 => z + (u - 0.5) * (span / (n - 1) as f64),
+        _ => z,
+    }
+}
+
 /// Importance depths as the release draws them. `z: (M, N)` sorted coarse depths,
 /// `weights: (M, N)` coarse integration weights, `u: (M, S)` uniforms in [0, 1).
 /// Weights get +1e-5, bins are the N − 1 midpoints, and the first and last weights are

@@ -6,8 +6,10 @@
 //! samples whose weight is at most `min_weight` are never shaded (density-first): the
 //! pixel changes by at most `min_weight · (skipped samples) · (1 + 2ε)`.
 use super::composite::composite;
+use super::occupancy::RayColours;
 use super::renderer::{Noise, Renderer};
 use crate::camera::Rays;
+use crate::field::RadianceField;
 use crate::nn::film::Film;
 use crate::Latents;
 use crate::{Error, Result};
@@ -36,7 +38,7 @@ pub struct ShapeSide {
     pub kept: i64,
 }
 
-impl Renderer<'_> {
+impl<F: RadianceField> Renderer<'_, F> {
     /// The density pass over rays `(B, R, 3)` (no gradients), keeping the samples whose
     /// weight exceeds `min_weight` (every sample when it is ≤ 0).
     pub fn shape_side(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<ShapeSide> {
@@ -78,17 +80,11 @@ impl Renderer<'_> {
     }
 
     /// Density-first rendering of rays `(B, R, 3)` in chunks of about `chunk_points`
-    /// samples: `(pixel (B, R, 3), depth (B, R, 1), opacity (B, R, 1))`, shading only the
-    /// samples whose weight exceeds `shade_min_weight`.
-    pub fn render_staged_chunked(
-        &self,
-        latents: &Latents,
-        rays: &Rays,
-        noise: &Noise,
-    ) -> Result<(Tensor, Tensor, Tensor)> {
+    /// samples, shading only the samples whose weight exceeds `shade_min_weight`.
+    pub fn render_staged_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
         let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b);
-        let (mut pix, mut depth, mut opacity) = (Vec::new(), Vec::new(), Vec::new());
+        let mut parts = Vec::new();
         let mut start = 0;
         while start < r {
             let len = chunk.min(r - start);
@@ -98,12 +94,16 @@ impl Renderer<'_> {
                 &noise.slice(0, b, start, len),
                 self.config.shade_min_weight,
             )?;
-            pix.push(self.shade(&side, &latents.appearance)?);
-            depth.push(side.depth);
-            opacity.push(side.opacity);
+            parts.push(RayColours {
+                pixel: self.shade(&side, &latents.appearance)?,
+                depth: side.depth,
+                opacity: side.opacity,
+                density_evals: side.evaluated,
+                colour_evals: side.kept,
+            });
             start += len;
         }
-        Ok((Tensor::cat(&pix, 1), Tensor::cat(&depth, 1), Tensor::cat(&opacity, 1)))
+        Ok(RayColours::concat(parts))
     }
 
     /// Colours `(B, R, 3)` of a shape side under `appearance` (one row per image): the
@@ -127,7 +127,7 @@ impl Renderer<'_> {
                 }
                 let feature = side.features.index_select(0, &sel).unsqueeze(0);
                 let dirs = side.dirs.index_select(0, &sel).unsqueeze(0);
-                let c = self.generator.color(&feature, &dirs, &appearance.narrow(i, 1)).squeeze_dim(0).to_kind(kind);
+                let c = self.generator.radiance(&feature, &dirs, &appearance.narrow(i, 1)).squeeze_dim(0).to_kind(kind);
                 rgb = rgb.index_copy(0, &sel, &c);
             }
             if o.force_last_white {

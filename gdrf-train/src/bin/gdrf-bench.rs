@@ -2,6 +2,7 @@
 //! printing medians and ratios and writing JSON and a bar chart.
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
+use gdrf_core::bench::{median, peak_rss_mb};
 use gdrf_core::camera::Poses;
 use gdrf_core::data::layouts::Layout;
 use gdrf_core::data::synth::SynthOptions;
@@ -13,7 +14,6 @@ use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfi
 use gdrf_core::{device, CameraConfig, Generator, GeneratorConfig, RenderConfig};
 use serde_json::json;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Instant;
 use tch::{nn, Kind, Tensor};
 
@@ -90,48 +90,8 @@ fn main() {
     }
 }
 
-fn median(v: &[f64]) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    let n = s.len();
-    if n % 2 == 1 {
-        s[n / 2]
-    } else {
-        0.5 * (s[n / 2 - 1] + s[n / 2])
-    }
-}
-
-fn peak_rss_mb() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).map(|l| l.to_string()))
-        .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
-        .map(|kb| kb / 1024.0)
-        .unwrap_or(f64::NAN)
-}
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
-
-fn python() -> PathBuf {
-    std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| root().join(".venv/bin/python"))
-}
-
-/// Runs `scripts/reference/<script>` with the project's Python and reads the JSON it
-/// prints (its progress messages go to our stderr).
 fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value> {
-    eprintln!("running the PyTorch reference …");
-    let out = Command::new(python())
-        .arg(root().join("scripts/reference").join(script))
-        .args(args)
-        .stderr(std::process::Stdio::inherit())
-        .output()
-        .context("starting the PyTorch reference (run scripts/setup.sh)")?;
-    if !out.status.success() {
-        bail!("the PyTorch reference failed (its messages are above)");
-    }
-    serde_json::from_slice(&out.stdout).context("reading the reference's JSON")
+    Ok(gdrf_core::bench::run_reference(script, args)?)
 }
 
 /// Writes `OUT_DIR/<name>.json` atomically and its bar chart `<name>.png`.
@@ -140,14 +100,7 @@ fn write_report(out_dir: &Path, name: &str, doc: &serde_json::Value) -> Result<(
     let json_path = out_dir.join(format!("{name}.json"));
     gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(doc)?.as_bytes())?;
     let png = out_dir.join(format!("{name}.png"));
-    let status = Command::new(python())
-        .arg(root().join("scripts/plot_bench.py"))
-        .args([&json_path, &png])
-        .status()
-        .context("starting scripts/plot_bench.py")?;
-    if !status.success() {
-        bail!("plotting failed (is matplotlib installed? run scripts/setup.sh)");
-    }
+    gdrf_core::bench::run_script("plot_bench.py", &[&json_path, &png])?;
     println!("wrote {} and {}", json_path.display(), png.display());
     Ok(())
 }

@@ -6,6 +6,7 @@
 //! `metadata.json` ([`Metadata`]) and `camera_param.json` (the authors' pose format, so
 //! any loader of their layouts reads it). `metadata.json` is written last and atomically:
 //! a directory without it is an unfinished generation.
+pub mod analytic;
 pub mod chairs;
 pub mod material;
 pub mod render;

@@ -89,6 +89,20 @@ impl Scene {
         &self.prims
     }
 
+    /// Signed distance to the object at world point `p` and the albedo of its nearest
+    /// primitive there (what the analytic radiance field is made of).
+    pub fn sdf_albedo(&self, p: V3) -> (f32, [f32; 3]) {
+        let (d, i) = self.prims.iter().enumerate().fold((f32::MAX, 0), |best, (i, prim)| {
+            let d = prim.sdf(p);
+            if d < best.0 {
+                (d, i)
+            } else {
+                best
+            }
+        });
+        (d, self.albedo(&self.prims[i], p))
+    }
+
     fn albedo(&self, prim: &Prim, p: V3) -> [f32; 3] {
         let (rot, origin) = &self.frames[prim.part as usize];
         let natural = p * (1.0 / self.scale) + self.centre;

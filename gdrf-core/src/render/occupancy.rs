@@ -1,0 +1,272 @@
+//! A per-instance occupancy grid, built from the shape side alone (Φ and T_σ at the cell
+//! centres, no colour), and rendering inside it: rays that meet no occupied cell cost one
+//! sample (the far end, see below), the others are sampled only over the interval between
+//! their first and last occupied cell. The grid depends on the shape modulation only, so a
+//! grid is built once per shape and reused for every view and every appearance.
+use super::composite::composite;
+use super::renderer::{Noise, Renderer};
+use crate::camera::Rays;
+use crate::config::CameraConfig;
+use crate::field::generator::{FieldOptions, Latents};
+use crate::field::RadianceField;
+use crate::nn::film::Film;
+use crate::{Error, Result};
+use tch::{Kind, Tensor};
+
+/// Lattice points mark their cells at this fraction of the threshold.
+const LATTICE_MARGIN: f64 = 0.5;
+
+/// How a grid is built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridConfig {
+    /// Cells per side.
+    pub resolution: i64,
+    /// The promise: no point whose density softplus(σ) exceeds this lies in an empty cell.
+    /// Cells are marked from their centre and corners at half this density (density
+    /// between lattice points can exceed what the lattice saw) and then dilated.
+    pub threshold: f64,
+    /// Occupied cells grow by this many cells in every direction, so that density between
+    /// cell centres (and the correction field's Δσ there) is not lost.
+    pub dilation: i64,
+}
+
+impl Default for GridConfig {
+    fn default() -> Self {
+        Self { resolution: 32, threshold: 0.5, dilation: 1 }
+    }
+}
+
+impl GridConfig {
+    pub fn validate(&self) -> Result<()> {
+        if !(4..=512).contains(&self.resolution) {
+            return Err(Error::Invalid(format!("grid resolution {} outside 4..=512", self.resolution)));
+        }
+        if !(self.threshold >= 0.0 && self.threshold.is_finite()) || self.dilation < 0 {
+            return Err(Error::Invalid(format!(
+                "grid threshold {} and dilation {}: expected a finite threshold ≥ 0 and a dilation ≥ 0",
+                self.threshold, self.dilation
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Occupied cells of the cube `[−half, half]³` for one shape.
+#[derive(Debug)]
+pub struct OccupancyGrid {
+    pub cfg: GridConfig,
+    pub half: f64,
+    /// `(G, G, G)` bool, indexed `[x, y, z]`.
+    pub occupied: Tensor,
+    /// Density queries spent building it.
+    pub evaluated: i64,
+}
+
+/// Half-size of a cube holding every sample of the camera's rays: a camera on the unit
+/// sphere, samples at depths [ray_start, ray_end] within the square field of view's
+/// corner angle (|x|² = 1 + t² − 2t·cos θ is convex in t, so the ends bound it).
+pub fn camera_half_extent(camera: &CameraConfig) -> f64 {
+    let corner = (2f64.sqrt() * (camera.fov_deg.to_radians() / 2.0).tan()).atan();
+    [camera.ray_start, camera.ray_end]
+        .iter()
+        .map(|t| (1.0 + t * t - 2.0 * t * corner.cos()).max(0.0).sqrt())
+        .fold(0.0, f64::max)
+}
+
+impl OccupancyGrid {
+    /// Builds the grid of shape modulation `shape` (one image) over the cube that holds
+    /// every sample of `camera`'s rays.
+    pub fn build<F: RadianceField>(
+        generator: &F,
+        shape: &Film,
+        field: FieldOptions,
+        camera: &CameraConfig,
+        cfg: GridConfig,
+        chunk: i64,
+    ) -> Result<Self> {
+        cfg.validate()?;
+        if shape.batch_size() != 1 {
+            return Err(Error::Invalid(format!(
+                "an occupancy grid is built for one shape, got {}",
+                shape.batch_size()
+            )));
+        }
+        let g = cfg.resolution;
+        let half = camera_half_extent(camera);
+        let (kind, device) = generator.kind_device();
+        let cell = 2.0 * half / g as f64;
+        // Density at the (G+1)³ cell corners and the G³ cell centres: a cell is occupied
+        // when any of its 9 points is, so that a surface crossing a cell is seen from both
+        // sides of it.
+        let lattice = |n: i64, offset: f64| {
+            let c = (Tensor::arange(n, (kind, device)) + offset) * cell - half;
+            let axis = |shape: [i64; 3]| c.view(shape).expand([n, n, n], false);
+            Tensor::stack(&[axis([n, 1, 1]), axis([1, n, 1]), axis([1, 1, n])], 3).reshape([1, n * n * n, 3])
+        };
+        let dense = |x: Tensor| -> Tensor {
+            let n = x.size()[1];
+            let parts: Vec<Tensor> = (0..n)
+                .step_by(chunk.max(1) as usize)
+                .map(|start| {
+                    let len = chunk.min(n - start);
+                    let s = generator
+                        .sigma_feature(&x.narrow(1, start, len), shape, field)
+                        .0
+                        .to_kind(Kind::Float)
+                        .softplus();
+                    // NaN densities count as occupied: the renderer then evaluates them as
+                    // the reference would.
+                    s.gt(cfg.threshold * LATTICE_MARGIN).logical_or(&s.isnan())
+                })
+                .collect();
+            Tensor::cat(&parts, 1).to_kind(Kind::Float)
+        };
+        let (corners, centres) = tch::no_grad(|| (dense(lattice(g + 1, 0.0)), dense(lattice(g, 0.5))));
+        let corners = corners.view([1, 1, g + 1, g + 1, g + 1]).max_pool3d([2; 3], [1; 3], [0; 3], [1; 3], false);
+        let occ = corners.maximum(&centres.view([1, 1, g, g, g]));
+        let k = cfg.dilation;
+        let occ = if k > 0 { occ.max_pool3d([2 * k + 1; 3], [1; 3], [k; 3], [1; 3], false) } else { occ };
+        let evaluated = (g + 1).pow(3) + g.pow(3);
+        Ok(Self { cfg, half, occupied: occ.view([g, g, g]).gt(0.5), evaluated })
+    }
+
+    /// Whether the cells holding `x: (…, 3)` are occupied; points outside the cube count as
+    /// occupied (the grid knows nothing there).
+    pub fn contains(&self, x: &Tensor) -> Tensor {
+        let g = self.cfg.resolution;
+        let cell = ((x.to_kind(Kind::Float) + self.half) * (g as f64 / (2.0 * self.half))).floor();
+        let inside = cell.ge(0.0).logical_and(&cell.lt(g as f64)).all_dim(-1, false);
+        let idx = cell.clamp(0.0, (g - 1) as f64).to_kind(Kind::Int64);
+        let flat = idx.select(-1, 0) * (g * g) + idx.select(-1, 1) * g + idx.select(-1, 2);
+        let occ = self
+            .occupied
+            .to_device(x.device())
+            .view([-1])
+            .index_select(0, &flat.view([-1]))
+            .view(flat.size().as_slice());
+        occ.logical_or(&inside.logical_not())
+    }
+
+    /// Each ray's interval `(B, R, 2)` between its first and last occupied cell (widened
+    /// by one lookup step, within [start, end]) and whether it meets any `(B, R)`: the
+    /// ray is walked in steps of half a cell, so it cannot cross a cell unseen.
+    pub fn clip(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, Tensor) {
+        let cell = 2.0 * self.half / self.cfg.resolution as f64;
+        let m = (((end - start) / (0.5 * cell)).ceil() as i64 + 1).max(2);
+        let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
+        let t = Tensor::linspace(start, end, m, (kind, device));
+        let step = (end - start) / (m - 1) as f64;
+        let x = rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * t.view([1, 1, m, 1]);
+        let occ = self.contains(&x); // (B, R, M)
+        let hit = occ.any_dim(2, false);
+        let ramp = Tensor::arange(m, (Kind::Int64, device)).view([1, 1, m]);
+        let first = ramp.where_scalarother(&occ, m).amin(&[2i64][..], false);
+        let last = ramp.where_scalarother(&occ, -1).amax(&[2i64][..], false);
+        let near = (first.to_kind(kind) * step + start - step).clamp(start, end);
+        let far = (last.to_kind(kind) * step + start + step).clamp(start, end);
+        (Tensor::stack(&[near, far], 2), hit)
+    }
+}
+
+/// Colours of a bundle of rays and what they cost.
+#[derive(Debug)]
+pub struct RayColours {
+    /// `(B, R, 3)` pixels in (0, 1), `(B, R, 1)` expected depth and opacity.
+    pub pixel: Tensor,
+    pub depth: Tensor,
+    pub opacity: Tensor,
+    /// Density (Φ + T_σ) and colour (T_c) queries spent.
+    pub density_evals: i64,
+    pub colour_evals: i64,
+}
+
+impl RayColours {
+    pub(crate) fn concat(parts: Vec<RayColours>) -> RayColours {
+        let cat = |f: &dyn Fn(&RayColours) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
+        RayColours {
+            pixel: cat(&|p| &p.pixel),
+            depth: cat(&|p| &p.depth),
+            opacity: cat(&|p| &p.opacity),
+            density_evals: parts.iter().map(|p| p.density_evals).sum(),
+            colour_evals: parts.iter().map(|p| p.colour_evals).sum(),
+        }
+    }
+}
+
+impl<F: RadianceField> Renderer<'_, F> {
+    /// The occupancy grid of one shape (row `i` of `shape`) for this renderer's camera.
+    pub fn occupancy_grid(&self, shape: &Film, cfg: GridConfig) -> Result<OccupancyGrid> {
+        OccupancyGrid::build(self.generator, shape, self.field, self.camera, cfg, self.config.chunk_points as i64)
+    }
+
+    /// Renders rays `(1, R, 3)` of one image inside its shape's `grid` (no gradients):
+    /// rays that meet no occupied cell are shaded from their far-end sample alone (the
+    /// reference's last interval is infinite, so that sample decides an empty ray's
+    /// colour), the others are sampled within their occupied interval
+    /// ([`Rays::bounds`]) by the density-first or the full path.
+    pub fn render_in_grid(
+        &self,
+        latents: &Latents,
+        rays: &Rays,
+        grid: &OccupancyGrid,
+        noise: &Noise,
+    ) -> Result<RayColours> {
+        if latents.batch_size() != 1 || rays.dirs.size()[0] != 1 {
+            return Err(Error::Invalid("render_in_grid renders one image at a time".into()));
+        }
+        tch::no_grad(|| {
+            let r = rays.num_rays();
+            let (bounds, hit) = grid.clip(rays, self.camera.ray_start, self.camera.ray_end);
+            let hit = hit.view([r]);
+            let on = hit.nonzero().view([-1]);
+            let off = hit.logical_not().nonzero().view([-1]);
+            let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
+            let mut pixel = Tensor::zeros([1, r, 3], (kind, device));
+            let mut depth = Tensor::zeros([1, r, 1], (kind, device));
+            let mut opacity = Tensor::zeros([1, r, 1], (kind, device));
+            let (mut density_evals, mut colour_evals) = (0, 0);
+            let mut put = |idx: &Tensor, c: RayColours| {
+                pixel = pixel.index_copy(1, idx, &c.pixel.to_kind(kind));
+                depth = depth.index_copy(1, idx, &c.depth.to_kind(kind));
+                opacity = opacity.index_copy(1, idx, &c.opacity.to_kind(kind));
+                density_evals += c.density_evals;
+                colour_evals += c.colour_evals;
+            };
+            if on.size()[0] > 0 {
+                let sub = rays.select_rays(&on).with_bounds(bounds.index_select(1, &on));
+                let pick = |t: &Option<Tensor>| t.as_ref().map(|t| t.index_select(1, &on));
+                let noise = Noise { jitter: pick(&noise.jitter), importance: pick(&noise.importance) };
+                let c = if self.config.shade_min_weight > 0.0 {
+                    self.render_staged_chunked(latents, &sub, &noise)?
+                } else {
+                    let out = self.render_rays_chunked(latents, &sub, &noise)?;
+                    let evals = out.z.size()[1] * out.z.size()[2];
+                    RayColours {
+                        pixel: out.pixel,
+                        depth: out.depth,
+                        opacity: out.opacity,
+                        density_evals: evals,
+                        colour_evals: evals,
+                    }
+                };
+                put(&on, c);
+            }
+            if off.size()[0] > 0 {
+                put(&off, self.render_far_end(latents, &rays.select_rays(&off)));
+            }
+            Ok(RayColours { pixel, depth, opacity, density_evals, colour_evals })
+        })
+    }
+
+    /// Rays `(1, K, 3)` shaded from one sample at the camera's far end, integrated with
+    /// the final interval as the reference integrates its last sample.
+    fn render_far_end(&self, latents: &Latents, rays: &Rays) -> RayColours {
+        let k = rays.num_rays();
+        let x = &rays.origins + &rays.dirs * self.camera.ray_end;
+        let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);
+        let rgb = self.generator.radiance(&feature, &self.sample_dirs(&rays.dirs, 1), &latents.appearance);
+        let z = Tensor::full([1, k, 1, 1], self.camera.ray_end, (rays.dirs.kind(), rays.dirs.device()));
+        let c = composite(&rgb.view([1, k, 1, 3]), &sigma.view([1, k, 1, 1]), &z, &self.composite_options());
+        RayColours { pixel: c.pixel, depth: c.depth, opacity: c.opacity, density_evals: k, colour_evals: k }
+    }
+}

@@ -1,0 +1,393 @@
+//! `gdrf-edit bench`: run time against error for each renderer configuration, on the
+//! trained model and on an analytic scene with exact surfaces, beside the PyTorch
+//! reference renderer timed in the same run.
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use gdrf_core::bench::{median, peak_rss_mb, run_reference, run_script};
+use gdrf_core::camera::Poses;
+use gdrf_core::checkpoint::{load_generator, write_atomic};
+use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
+use gdrf_core::field::RadianceField;
+use gdrf_core::nn::mapping::seeded_randn;
+use gdrf_core::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
+use gdrf_core::{device, CameraConfig, Latents, RenderConfig};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+use std::path::PathBuf;
+use std::time::Instant;
+use tch::{Device, Kind, Tensor};
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Generator checkpoint benchmarked beside the analytic scene.
+    #[arg(long, value_name = "FILE", default_value = "models/chairs-tiny/generator.safetensors")]
+    checkpoint: PathBuf,
+    /// Image sizes (square).
+    #[arg(long, value_delimiter = ',', default_value = "64,128")]
+    resolutions: Vec<i64>,
+    /// Latent seeds of the model (z = randn after manual_seed, as `render`), and object
+    /// seeds of the analytic scene (procedural chairs).
+    #[arg(long, value_delimiter = ',', default_value = "0,1")]
+    seeds: Vec<i64>,
+    /// Views per seed (yaw spread over 360° at the camera's mean pitch); an occupancy grid
+    /// is built once per seed and reused by its views.
+    #[arg(long, default_value_t = 2)]
+    views: usize,
+    /// Timed repetitions (after one warm-up); times are medians.
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Coarse samples N of the dense reference that errors are measured against
+    /// (N stratified + N importance, no jitter).
+    #[arg(long, default_value_t = 256)]
+    reference_steps: usize,
+    /// Skip the PyTorch reference (it needs the project's Python: scripts/setup.sh).
+    #[arg(long)]
+    no_pytorch: bool,
+    /// Output folder: render.json, render.png (time against error) and render.md (table).
+    #[arg(long, default_value = "bench")]
+    out: PathBuf,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    device: String,
+}
+
+/// One renderer configuration.
+struct Setting {
+    name: String,
+    steps: usize,
+    min_weight: f64,
+    grid: Option<GridConfig>,
+}
+
+/// The release trains and renders with N = 36 at 64² and N = 64 at 128².
+fn release_steps(res: i64) -> usize {
+    if res <= 64 {
+        36
+    } else {
+        64
+    }
+}
+
+fn settings(res: i64) -> Vec<Setting> {
+    let n = release_steps(res);
+    let grid = Some(GridConfig::default());
+    let s = |name: &str, steps: usize, min_weight: f64, grid: Option<GridConfig>| Setting {
+        name: format!("{name} N={steps}"),
+        steps,
+        min_weight,
+        grid,
+    };
+    let mut v = vec![s("reference", n, 0.0, None), s("reference", 24, 0.0, None), s("reference", 12, 0.0, None)];
+    v.push(s("density-first", n, 1e-3, None));
+    v.push(s("density-first", 24, 1e-3, None));
+    for steps in [n, 24, 12, 8] {
+        v.push(s("grid", steps, 0.0, grid));
+    }
+    for steps in [24, 12, 8] {
+        v.push(s("grid+density-first", steps, 1e-3, grid));
+    }
+    v
+}
+
+/// Stratified importance uniforms (k + ½)/N and no jitter: deterministic renders that
+/// the PyTorch reference reproduces.
+fn noise(b: i64, r: i64, n: usize, device: Device) -> Noise {
+    let n = n as i64;
+    let u = ((Tensor::arange(n, (Kind::Float, device)) + 0.5) / n as f64).view([1, 1, n]).expand([b, r, n], false);
+    Noise { jitter: None, importance: Some(u.contiguous()) }
+}
+
+struct Scene<'a, F: RadianceField> {
+    name: &'static str,
+    fields: Vec<&'a F>,
+    latents: Vec<Latents>,
+}
+
+pub fn bench(a: BenchArgs) -> Result<()> {
+    if a.seeds.is_empty() || a.views == 0 || a.repeats == 0 || a.resolutions.is_empty() {
+        bail!("--seeds, --views, --repeats and --resolutions need at least one value each");
+    }
+    if let Some(r) = a.resolutions.iter().find(|r| !(8..=1024).contains(*r)) {
+        bail!("--resolutions: {r} is outside 8..=1024");
+    }
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    let loaded = load_generator(&a.checkpoint, dev, Kind::Float)
+        .with_context(|| format!("loading --checkpoint {}", a.checkpoint.display()))?;
+    let camera = loaded.header.camera.clone().unwrap_or_default();
+    let latent = loaded.generator.cfg.latent_dim as i64;
+    let poses: Vec<(f64, f64)> =
+        (0..a.views).map(|k| (camera.v_mean, 0.4 + std::f64::consts::TAU * k as f64 / a.views as f64)).collect();
+    let model = Scene {
+        name: "model",
+        fields: vec![&loaded.generator; a.seeds.len()],
+        latents: a
+            .seeds
+            .iter()
+            .map(|&s| {
+                let z = seeded_randn(&[1, latent], s).to_device(dev);
+                tch::no_grad(|| loaded.generator.latents(&z, &z, None))
+            })
+            .collect(),
+    };
+    let objects: Vec<AnalyticField> = a
+        .seeds
+        .iter()
+        .map(|&s| {
+            let (shape, app) = sample_object(Category::Chairs, s as u64);
+            AnalyticField::new(&shape, &app, &camera, 500.0, 0.004)
+        })
+        .collect::<gdrf_core::Result<_>>()?;
+    let analytic = Scene {
+        name: "analytic",
+        fields: objects.iter().collect(),
+        latents: objects.iter().map(|f| f.latents(1)).collect(),
+    };
+
+    println!(
+        "gdrf-edit bench: {} seed(s) × {} view(s) at {:?} on {dev:?} ({threads} threads); errors against N={} + {} without jitter",
+        a.seeds.len(),
+        a.views,
+        a.resolutions,
+        a.reference_steps,
+        a.reference_steps
+    );
+    let mut results = Vec::new();
+    let mut pytorch = Vec::new();
+    for &res in &a.resolutions {
+        let (rows, images) = run_scene(&model, &camera, &poses, res, &a)?;
+        results.extend(rows);
+        if !a.no_pytorch {
+            pytorch.push(pytorch_reference(&a, &poses, res, &images)?);
+        }
+        let (rows, _) = run_scene(&analytic, &camera, &poses, res, &a)?;
+        results.extend(rows);
+    }
+    let doc = json!({
+        "title": "renderer: time against error",
+        "checkpoint": a.checkpoint.display().to_string(),
+        "device": format!("{dev:?}"),
+        "threads": threads,
+        "seeds": a.seeds,
+        "views": a.views,
+        "repeats": a.repeats,
+        "reference_steps": a.reference_steps,
+        "results": results,
+        "pytorch": pytorch,
+    });
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating --out {}", a.out.display()))?;
+    let json_path = a.out.join("render.json");
+    write_atomic(&json_path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    let md = markdown(&doc);
+    write_atomic(&a.out.join("render.md"), md.as_bytes())?;
+    let png = a.out.join("render.png");
+    run_script("plot_render_bench.py", &[&json_path, &png])?;
+    println!("{md}");
+    println!("wrote {}, {} and {}", json_path.display(), png.display(), a.out.join("render.md").display());
+    Ok(())
+}
+
+/// PSNR in dB of pixels in [−1, 1] (as [0, 1] images) from their mean squared error.
+fn psnr(a: &Tensor, b: &Tensor) -> f64 {
+    let mse = f64::try_from(((a - b) * 0.5).square().mean(Kind::Double)).unwrap_or(f64::NAN);
+    -10.0 * mse.max(1e-20).log10()
+}
+
+fn max_abs(t: &Tensor) -> f64 {
+    f64::try_from(t.abs().max().to_kind(Kind::Double)).unwrap_or(f64::NAN)
+}
+
+fn run_scene<F: RadianceField>(
+    scene: &Scene<F>,
+    camera: &CameraConfig,
+    poses: &[(f64, f64)],
+    res: i64,
+    a: &BenchArgs,
+) -> Result<(Vec<serde_json::Value>, Tensor)> {
+    let (_, dev) = scene.fields[0].kind_device();
+    let r = res * res;
+    let render_all = |rc: &RenderConfig, grids: &[Option<OccupancyGrid>]| -> Result<(Image, (i64, i64))> {
+        let mut parts = Vec::new();
+        let (mut dq, mut cq) = (0, 0);
+        for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
+            let renderer = Renderer::new(*field, camera, rc)?;
+            let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
+            for &pose in poses {
+                let pose = Poses::from_angles(&[pose], Kind::Float, dev);
+                let (img, (d, c)) =
+                    renderer.render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
+                parts.push(img);
+                dq += d;
+                cq += c;
+            }
+        }
+        let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+        Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
+    };
+    let n_images = (scene.fields.len() * poses.len()) as f64;
+    eprintln!("{} {res}²: dense reference (N={} + {}) …", scene.name, a.reference_steps, a.reference_steps);
+    let dense_rc = RenderConfig { num_steps: a.reference_steps, jitter: false, ..Default::default() };
+    let no_grids: Vec<Option<OccupancyGrid>> = scene.fields.iter().map(|_| None).collect();
+    let (dense, _) = render_all(&dense_rc, &no_grids)?;
+
+    let list = settings(res);
+    let bar = ProgressBar::new(list.len() as u64).with_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} configurations, {elapsed} elapsed, eta {eta}")
+            .unwrap()
+            .progress_chars("=> "),
+    );
+    bar.set_message(format!("{} {res}²", scene.name));
+    let mut rows = Vec::new();
+    let mut reference_images = Tensor::zeros([0], (Kind::Float, dev));
+    for s in &list {
+        let rc =
+            RenderConfig { num_steps: s.steps, jitter: false, shade_min_weight: s.min_weight, ..Default::default() };
+        // Grids are built once per shape, timed apart from the renders that reuse them.
+        let (grids, grid_ms, grid_queries) = match s.grid {
+            Some(cfg) => {
+                let t = Instant::now();
+                let grids = scene
+                    .fields
+                    .iter()
+                    .zip(&scene.latents)
+                    .map(|(f, l)| {
+                        Renderer::new(*f, camera, &rc).and_then(|r| r.occupancy_grid(&l.shape, cfg)).map(Some)
+                    })
+                    .collect::<gdrf_core::Result<Vec<_>>>()?;
+                let ms = 1000.0 * t.elapsed().as_secs_f64() / scene.fields.len() as f64;
+                let q = grids.iter().flatten().map(|g| g.evaluated).sum::<i64>() / scene.fields.len() as i64;
+                (grids, ms, q)
+            }
+            None => (no_grids.iter().map(|_| None).collect(), 0.0, 0),
+        };
+        let mut times = Vec::new();
+        let mut out = None;
+        for rep in 0..=a.repeats {
+            let t = Instant::now();
+            let o = render_all(&rc, &grids)?;
+            if rep > 0 {
+                times.push(1000.0 * t.elapsed().as_secs_f64() / n_images);
+            }
+            out = Some(o);
+        }
+        let (img, (dq, cq)) = out.expect("rendered");
+        if s.name == format!("reference N={}", release_steps(res)) {
+            reference_images = img.rgb.shallow_clone();
+        }
+        let ms = median(&times);
+        rows.push(json!({
+            "scene": scene.name,
+            "resolution": res,
+            "config": s.name,
+            "steps": s.steps,
+            "min_weight": s.min_weight,
+            "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation})),
+            "ms_per_image": ms,
+            "ms_per_image_runs": times,
+            "grid_ms_per_shape": grid_ms,
+            "ms_per_image_with_grid_build": ms + grid_ms / poses.len() as f64,
+            "density_queries_per_image": dq as f64 / n_images,
+            "colour_queries_per_image": cq as f64 / n_images,
+            "grid_queries_per_shape": grid_queries,
+            "psnr_db": psnr(&img.rgb, &dense.rgb),
+            "max_abs_error": max_abs(&((&img.rgb - &dense.rgb) * 0.5)),
+            "opacity_error": max_abs(&(&img.opacity - &dense.opacity)),
+            "peak_rss_mb_so_far": peak_rss_mb(),
+        }));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    for row in &rows {
+        eprintln!(
+            "  {:<8} {res:>4}² {:<26} {:>8.1} ms/image {:>6.1} dB  opacity err {:.1e}",
+            scene.name,
+            row["config"].as_str().unwrap_or(""),
+            row["ms_per_image"].as_f64().unwrap_or(f64::NAN),
+            row["psnr_db"].as_f64().unwrap_or(f64::NAN),
+            row["opacity_error"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    Ok((rows, reference_images))
+}
+
+/// The PyTorch reference sampler on the same checkpoint, seeds, poses and uniforms; its
+/// images are compared with the Rust reference configuration's.
+fn pytorch_reference(a: &BenchArgs, poses: &[(f64, f64)], res: i64, rust_images: &Tensor) -> Result<serde_json::Value> {
+    let tmp = std::env::temp_dir().join(format!("gdrf-bench-render-{}-{res}.safetensors", std::process::id()));
+    let n = release_steps(res);
+    let args: Vec<String> = vec![
+        a.checkpoint.display().to_string(),
+        "--seeds".into(),
+        a.seeds.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(","),
+        "--poses".into(),
+        poses.iter().map(|(p, y)| format!("{p}:{y}")).collect::<Vec<_>>().join(","),
+        "--resolution".into(),
+        res.to_string(),
+        "--num-steps".into(),
+        n.to_string(),
+        "--repeats".into(),
+        a.repeats.to_string(),
+        "--images-out".into(),
+        tmp.display().to_string(),
+    ];
+    let mut v = run_reference("bench_render.py", &args)?;
+    let images =
+        Tensor::read_safetensors(&tmp).with_context(|| format!("reading the reference's images {}", tmp.display()))?;
+    let _ = std::fs::remove_file(&tmp);
+    let theirs = images
+        .into_iter()
+        .find(|(k, _)| k == "images")
+        .map(|(_, t)| t)
+        .context("no 'images' in the reference's output")?;
+    let diff = max_abs(&((theirs.to_device(rust_images.device()) - rust_images) * 0.5));
+    v["resolution"] = json!(res);
+    v["config"] = json!(format!("reference N={n}"));
+    v["max_abs_difference_from_rust"] = json!(diff);
+    eprintln!(
+        "  pytorch  {res:>4}² reference N={n}: {:.1} ms/image, images within {diff:.1e} of Rust's",
+        v["ms_per_image"].as_f64().unwrap_or(f64::NAN)
+    );
+    Ok(v)
+}
+
+/// The README table: per scene and resolution, each configuration's time, speed-up over
+/// the release's sampler in this binary, queries and errors; the PyTorch reference's time.
+fn markdown(doc: &serde_json::Value) -> String {
+    let mut s = String::from(
+        "| scene | size | configuration | ms/image | speed-up | density / colour queries per image | PSNR (dB) | max error | opacity error |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let rows = doc["results"].as_array().cloned().unwrap_or_default();
+    for row in &rows {
+        let (scene, res) = (row["scene"].as_str().unwrap_or(""), row["resolution"].as_i64().unwrap_or(0));
+        let base = rows
+            .iter()
+            .find(|r| {
+                r["scene"] == row["scene"]
+                    && r["resolution"] == row["resolution"]
+                    && r["config"] == json!(format!("reference N={}", release_steps(res)))
+            })
+            .and_then(|r| r["ms_per_image"].as_f64())
+            .unwrap_or(f64::NAN);
+        let ms = row["ms_per_image"].as_f64().unwrap_or(f64::NAN);
+        let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
+        s += &format!(
+            "| {scene} | {res}² | {} | {ms:.1} | {:.2}× | {:.0} / {:.0} | {:.1} | {:.3} | {:.1e} |\n",
+            row["config"].as_str().unwrap_or(""),
+            base / ms,
+            f("density_queries_per_image"),
+            f("colour_queries_per_image"),
+            f("psnr_db"),
+            f("max_abs_error"),
+            f("opacity_error"),
+        );
+    }
+    for p in doc["pytorch"].as_array().cloned().unwrap_or_default() {
+        s += &format!(
+            "| model | {}² | PyTorch reference, {} | {:.1} | | | | | |\n",
+            p["resolution"].as_i64().unwrap_or(0),
+            p["config"].as_str().unwrap_or(""),
+            p["ms_per_image"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    s
+}
