@@ -192,3 +192,50 @@ fn a_real_camera_renders_the_image_of_its_pose() {
     assert_close("pixel", &by_camera.pixel, &by_pose.pixel, 1e-9, 1e-9);
     assert_close("opacity", &by_camera.opacity, &by_pose.opacity, 1e-9, 1e-9);
 }
+
+/// Early ray termination at ε: against the same sample depths evaluated in full, no pixel
+/// moves by more than ε (the light the skipped samples could carry); on the analytic chair
+/// it skips the samples behind the surfaces.
+#[test]
+fn early_termination_stays_within_its_bound() {
+    let (f, cam) = analytic(2);
+    let (m, mcam) = shipped();
+    let res = 24;
+    let eps = 1e-3;
+    let check = |name: &str, skipped_share: f64, run: &dyn Fn(&RenderConfig) -> (Tensor, Tensor, i64, i64)| {
+        let rc = RenderConfig { num_steps: 16, jitter: false, termination: eps, ..Default::default() };
+        let (pixel, again, evaluated, full) = run(&rc);
+        let err = f64::try_from((&pixel - &again).abs().max()).unwrap();
+        println!("{name}: max pixel change {err:.2e} (bound {eps}), {evaluated} of {full} samples evaluated");
+        assert!(err <= eps * (1.0 + 1e-3) + 1e-6, "{name}: {err} > {eps}");
+        assert!((evaluated as f64) < full as f64 * (1.0 - skipped_share), "{name}: {evaluated} of {full} evaluated");
+    };
+    let noise =
+        |n: i64| Noise { jitter: None, importance: Some(Tensor::rand([1, res * res, n], (Kind::Float, Device::Cpu))) };
+    check("analytic chair", 0.01, &|rc| {
+        let r = Renderer::new(&f, &cam, rc).unwrap();
+        let lat = f.latents(1);
+        let rays =
+            Rays::from_poses(&Poses::from_angles(&[(cam.v_mean, 0.6)], Kind::Float, Device::Cpu), res, cam.fov_deg);
+        let nz = noise(16);
+        let side = r.shape_side(&lat.shape, &rays, &nz, 0.0).unwrap();
+        let pixel = r.shade(&side, &lat.appearance).unwrap();
+        let d = tch::no_grad(|| r.density_pass(&lat.shape, &rays, &nz)).unwrap();
+        let again = tch::no_grad(|| r.render_at_depths(&lat, &rays, &d.z)).unwrap().pixel;
+        (pixel, again, side.evaluated, d.z.numel() as i64)
+    });
+    check("shipped model", 0.0, &|rc| {
+        let g = &m.generator;
+        let r = Renderer::new(g, &mcam, rc).unwrap();
+        let z = codes(1, g.cfg.latent_dim as i64, 4);
+        let lat = tch::no_grad(|| g.latents(&z, &z, None));
+        let rays =
+            Rays::from_poses(&Poses::from_angles(&[(mcam.v_mean, 1.6)], Kind::Float, Device::Cpu), res, mcam.fov_deg);
+        let nz = noise(16);
+        let side = r.shape_side(&lat.shape, &rays, &nz, 0.0).unwrap();
+        let pixel = r.shade(&side, &lat.appearance).unwrap();
+        let d = tch::no_grad(|| r.density_pass(&lat.shape, &rays, &nz)).unwrap();
+        let again = tch::no_grad(|| r.render_at_depths(&lat, &rays, &d.z)).unwrap().pixel;
+        (pixel, again, side.evaluated, d.z.numel() as i64)
+    });
+}

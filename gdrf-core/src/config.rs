@@ -173,6 +173,11 @@ pub struct RenderConfig {
     /// Inference (`render_image`) shades only the samples whose weight exceeds this
     /// (density-first, see `render::staged`); 0 = every sample, the reference sampler.
     pub shade_min_weight: f64,
+    /// Inference only: early ray termination. Coarse samples are evaluated front to back
+    /// in four segments and a ray stops once its transmittance falls below this; samples
+    /// behind are not evaluated unless the final integration finds more light left there
+    /// than this, so a pixel moves by at most this much. 0 = off.
+    pub termination: f64,
 }
 
 impl Default for RenderConfig {
@@ -188,6 +193,7 @@ impl Default for RenderConfig {
             widen_eps: 1e-3,
             chunk_points: 1 << 14,
             shade_min_weight: 0.0,
+            termination: 0.0,
         }
     }
 }
@@ -211,6 +217,12 @@ impl RenderConfig {
         }
         if self.chunk_points == 0 {
             return Err(Error::Config("render.chunk_points must be at least 1".into()));
+        }
+        if !(self.termination >= 0.0 && self.termination < 1.0) {
+            return Err(Error::Config(format!(
+                "render.termination is {}, expected a transmittance in [0, 1) (0 = off)",
+                self.termination
+            )));
         }
         if !(self.shade_min_weight >= 0.0 && self.shade_min_weight < 1.0) {
             return Err(Error::Config(format!(

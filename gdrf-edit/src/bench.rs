@@ -56,6 +56,7 @@ struct Setting {
     name: String,
     steps: usize,
     min_weight: f64,
+    termination: f64,
     grid: Option<GridConfig>,
 }
 
@@ -71,21 +72,25 @@ fn release_steps(res: i64) -> usize {
 fn settings(res: i64) -> Vec<Setting> {
     let n = release_steps(res);
     let grid = Some(GridConfig::default());
-    let s = |name: &str, steps: usize, min_weight: f64, grid: Option<GridConfig>| Setting {
+    let s = |name: &str, steps: usize, min_weight: f64, termination: f64, grid: Option<GridConfig>| Setting {
         name: format!("{name} N={steps}"),
         steps,
         min_weight,
+        termination,
         grid,
     };
-    let mut v = vec![s("reference", n, 0.0, None), s("reference", 24, 0.0, None), s("reference", 12, 0.0, None)];
-    v.push(s("density-first", n, 1e-3, None));
-    v.push(s("density-first", 24, 1e-3, None));
+    let mut v =
+        vec![s("reference", n, 0.0, 0.0, None), s("reference", 24, 0.0, 0.0, None), s("reference", 12, 0.0, 0.0, None)];
+    v.push(s("density-first", n, 1e-3, 0.0, None));
+    v.push(s("density-first", 24, 1e-3, 0.0, None));
+    v.push(s("early-termination", n, 0.0, 1e-3, None));
     for steps in [n, 24, 12, 8] {
-        v.push(s("grid", steps, 0.0, grid));
+        v.push(s("grid", steps, 0.0, 0.0, grid));
     }
     for steps in [24, 12, 8] {
-        v.push(s("grid+density-first", steps, 1e-3, grid));
+        v.push(s("grid+density-first", steps, 1e-3, 0.0, grid));
     }
+    v.push(s("grid+density-first+termination", 12, 1e-3, 1e-3, grid));
     v
 }
 
@@ -281,6 +286,7 @@ fn run_scene<F: RadianceField>(
             "config": s.name,
             "steps": s.steps,
             "min_weight": s.min_weight,
+            "termination": s.termination,
             "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation})),
             "ms_per_image": ms,
             "ms_per_image_runs": times,

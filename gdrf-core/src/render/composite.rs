@@ -53,6 +53,17 @@ fn wide(t: &Tensor) -> Tensor {
 /// α_i = 1 − exp(−δ_i·softplus(σ_i)), δ_S = `delta_final`, w_i = α_i Π_{j<i}(1 − α_j + 1e-10).
 /// Density alone decides the weights, so importance sampling needs no colour.
 pub fn weights_from_density(sigma: &Tensor, z: &Tensor, delta_final: f64) -> Tensor {
+    let (alphas, t) = alphas_transmittance(sigma, z, delta_final);
+    alphas * t
+}
+
+/// The transmittance in front of each sample, Π_{j<i}(1 − α_j + 1e-10), `(…, S, 1)`, as
+/// [`weights_from_density`] computes it (early ray termination reads it).
+pub fn transmittance(sigma: &Tensor, z: &Tensor, delta_final: f64) -> Tensor {
+    alphas_transmittance(sigma, z, delta_final).1
+}
+
+fn alphas_transmittance(sigma: &Tensor, z: &Tensor, delta_final: f64) -> (Tensor, Tensor) {
     let (sigma, z) = (wide(sigma), wide(z));
     let s = z.size()[z.dim() - 2];
     let deltas = z.narrow(-2, 1, s - 1) - z.narrow(-2, 0, s - 1);
@@ -60,7 +71,8 @@ pub fn weights_from_density(sigma: &Tensor, z: &Tensor, delta_final: f64) -> Ten
     // +inf densities are capped so that a zero-length interval gives 0, not 0·inf = NaN.
     let alphas = -(-(deltas * sigma.clamp_max(1e30).softplus())).exp() + 1.0;
     let shifted = Tensor::cat(&[alphas.narrow(-2, 0, 1).ones_like(), (-&alphas + 1.0) + 1e-10], -2);
-    &alphas * shifted.cumprod(-2, alphas.kind()).narrow(-2, 0, s)
+    let t = shifted.cumprod(-2, alphas.kind()).narrow(-2, 0, s);
+    (alphas, t)
 }
 
 /// Integrates colours `rgb: (…, S, 3)` in (0, 1) and raw densities `sigma: (…, S, 1)` at

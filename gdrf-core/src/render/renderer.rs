@@ -1,6 +1,6 @@
 //! The GDRF renderer: coarse pass, importance pass, merge, integrate — for training
 //! batches (with gradients), patches, and chunked inference in bounded memory.
-use super::composite::{composite, weights_from_density, CompositeOptions};
+use super::composite::{composite, transmittance, weights_from_density, CompositeOptions};
 use super::occupancy::{OccupancyGrid, RayColours};
 use super::samplers::{gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in};
 use crate::camera::{Poses, Rays};
@@ -9,7 +9,7 @@ use crate::field::generator::{FieldOptions, Generator, Latents};
 use crate::field::RadianceField;
 use crate::nn::film::Film;
 use crate::{Error, Result};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 /// Uniform noise the renderer would otherwise draw itself. Given explicitly, renders are
 /// reproducible and can be cross-checked sample for sample.
@@ -42,7 +42,19 @@ pub struct DensitySamples {
     pub features: Vec<Tensor>,
     /// `(B, R, S)`: the merged samples' sort permutation.
     pub order: Tensor,
+    /// `(B, R, S)` sorted, true where early termination left the sample unevaluated (its
+    /// density reads [`SKIPPED_SIGMA`]); `None` when every sample was evaluated.
+    pub skipped: Option<Tensor>,
+    /// Field queries spent.
+    pub evaluated: i64,
 }
+
+/// The raw density of a sample that early termination did not evaluate: softplus gives
+/// about 1e-35, no light.
+pub const SKIPPED_SIGMA: f64 = -80.0;
+
+/// Segments of the coarse samples evaluated one after the other under early termination.
+const TERMINATION_SEGMENTS: i64 = 4;
 
 impl DensitySamples {
     /// `(B, R, S, F)` features sorted by depth.
@@ -171,19 +183,14 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
             }
         };
         let nc = z_c.size()[2];
+        if cfg.termination > 0.0 {
+            return tch::no_grad(|| self.density_pass_terminating(shape, rays, noise, &z_c));
+        }
         let (sigma_c, feature_c) = gen.sigma_feature(&at(&z_c), shape, self.field);
         let sigma_c = sigma_c.view([b, r, nc, 1]);
         let feature_c = feature_c.view([b, r, nc, -1]);
         let (z, sigma, features) = if cfg.hierarchical {
-            let z_f = tch::no_grad(|| {
-                let w = weights_from_density(&sigma_c, &z_c.unsqueeze(-1), cfg.delta_final);
-                let u = match &noise.importance {
-                    Some(u) => u.shallow_clone(),
-                    None => Tensor::rand([b, r, n], opts),
-                };
-                importance_depths(&z_c.reshape([b * r, nc]), &w.reshape([b * r, nc]), &u.reshape([b * r, n]))
-                    .view([b, r, n])
-            });
+            let z_f = tch::no_grad(|| self.importance(&sigma_c, &z_c, noise));
             let (sigma_f, feature_f) = gen.sigma_feature(&at(&z_f), shape, self.field);
             (
                 Tensor::cat(&[z_f, z_c], 2),
@@ -193,8 +200,147 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         } else {
             (z_c, sigma_c, vec![feature_c])
         };
+        let evaluated = z.numel() as i64;
         let (z, order) = sort_depths(&z);
-        Ok(DensitySamples { sigma: gather_samples(&sigma, &order), features, z, order })
+        Ok(DensitySamples { sigma: gather_samples(&sigma, &order), features, z, order, skipped: None, evaluated })
+    }
+
+    /// N importance depths `(B, R, N)` from the coarse densities `(B, R, Nc, 1)` at `z_c`.
+    fn importance(&self, sigma_c: &Tensor, z_c: &Tensor, noise: &Noise) -> Tensor {
+        let s = z_c.size();
+        let (b, r, nc) = (s[0], s[1], s[2]);
+        let n = self.config.num_steps as i64;
+        let w = weights_from_density(sigma_c, &z_c.unsqueeze(-1), self.config.delta_final);
+        let u = match &noise.importance {
+            Some(u) => u.shallow_clone(),
+            None => Tensor::rand([b, r, n], (z_c.kind(), z_c.device())),
+        };
+        importance_depths(&z_c.reshape([b * r, nc]), &w.reshape([b * r, nc]), &u.reshape([b * r, n])).view([b, r, n])
+    }
+
+    /// The field at the samples `mask: (B, R, S)` of depths `z: (B, R, S)` only: raw
+    /// densities `(B, R, S, 1)` ([`SKIPPED_SIGMA`] elsewhere), features `(B, R, S, F)`
+    /// (0 elsewhere) and the number of queries.
+    fn query_where(&self, shape: &Film, rays: &Rays, z: &Tensor, mask: &Tensor, width: i64) -> (Tensor, Tensor, i64) {
+        let s = z.size();
+        let (b, r, n) = (s[0], s[1], s[2]);
+        let (kind, device) = (z.kind(), z.device());
+        let mut sigma = Tensor::full([b, r * n, 1], SKIPPED_SIGMA, (kind, device));
+        let mut feature = Tensor::zeros([b, r * n, width], (kind, device));
+        let mut count = 0;
+        for i in 0..b {
+            let idx = mask.get(i).reshape([-1]).nonzero().view([-1]);
+            let k = idx.size()[0];
+            if k == 0 {
+                continue;
+            }
+            let zi = z.get(i).reshape([-1]).index_select(0, &idx).unsqueeze(-1);
+            let ray = idx.divide_scalar_mode(n, "floor");
+            let x = rays.origins.get(i).index_select(0, &ray) + rays.dirs.get(i).index_select(0, &ray) * zi;
+            let (sg, ft) = self.generator.sigma_feature(&x.unsqueeze(0), &shape.narrow(i, 1), self.field);
+            let row = Tensor::from(i).to_device(device);
+            sigma = sigma.index_put(
+                &[Some(row.shallow_clone()), Some(idx.shallow_clone())],
+                &sg.get(0).to_kind(kind),
+                false,
+            );
+            feature = feature.index_put(&[Some(row), Some(idx)], &ft.get(0).to_kind(kind), false);
+            count += k;
+        }
+        (sigma.view([b, r, n, 1]), feature.view([b, r, n, width]), count)
+    }
+
+    /// Width of the colour feature (one query at the origin).
+    fn feature_width(&self, shape: &Film) -> i64 {
+        let (kind, device) = self.generator.kind_device();
+        let x = Tensor::zeros([1, 1, 3], (kind, device));
+        self.generator.sigma_feature(&x, &shape.narrow(0, 1), self.field).1.size()[2]
+    }
+
+    /// The density pass with early ray termination (no gradients): coarse samples front to
+    /// back in [`TERMINATION_SEGMENTS`] segments, each ray stopping once its transmittance
+    /// is below `termination`; importance samples only in front of where a ray stopped; a
+    /// last check on the merged samples evaluates whatever a ray skipped where the merged
+    /// transmittance is still above `termination`, so the skipped samples carry at most
+    /// that much light.
+    fn density_pass_terminating(
+        &self,
+        shape: &Film,
+        rays: &Rays,
+        noise: &Noise,
+        z_c: &Tensor,
+    ) -> Result<DensitySamples> {
+        let s = z_c.size();
+        let (b, r, nc) = (s[0], s[1], s[2]);
+        let (eps, df) = (self.config.termination, self.config.delta_final);
+        let device = z_c.device();
+        let width = self.feature_width(shape);
+        let (mut sigma_c, mut feature_c) = (
+            Tensor::full([b, r, nc, 1], SKIPPED_SIGMA, (z_c.kind(), device)),
+            Tensor::zeros([b, r, nc, width], (z_c.kind(), device)),
+        );
+        let mut evaluated = 0;
+        let mut done_c = Tensor::zeros([b, r, nc], (Kind::Bool, device));
+        let mut active = Tensor::ones([b, r, 1], (Kind::Bool, device));
+        let seg = (nc + TERMINATION_SEGMENTS - 1) / TERMINATION_SEGMENTS;
+        let pos = Tensor::arange(nc, (Kind::Int64, device)).view([1, 1, nc]);
+        let mut start = 0;
+        while start < nc {
+            let end = (start + seg).min(nc);
+            let mask = pos.ge(start).logical_and(&pos.lt(end)).logical_and(&active);
+            let (sg, ft, k) = self.query_where(shape, rays, z_c, &mask, width);
+            let m4 = mask.unsqueeze(-1);
+            sigma_c = sg.where_self(&m4, &sigma_c);
+            feature_c = ft.where_self(&m4, &feature_c);
+            done_c = done_c.logical_or(&mask);
+            evaluated += k;
+            if end < nc {
+                let t = transmittance(&sigma_c, &z_c.unsqueeze(-1), df).squeeze_dim(-1).narrow(2, end, 1);
+                active = active.logical_and(&t.ge(eps));
+            }
+            start = end;
+        }
+        let (mut z, mut sigma, mut features, mut done) = (z_c.shallow_clone(), sigma_c, vec![feature_c], done_c);
+        if self.config.hierarchical {
+            let z_f = self.importance(&sigma, z_c, noise);
+            // A ray that stopped skips the importance samples behind its first skipped
+            // coarse sample.
+            let stop = z_c.where_self(&done.logical_not(), &z_c.full_like(f64::INFINITY)).amin(&[2i64][..], true);
+            let mask = z_f.lt_tensor(&stop);
+            let (sigma_f, feature_f, k) = self.query_where(shape, rays, &z_f, &mask, width);
+            evaluated += k;
+            z = Tensor::cat(&[z_f, z], 2);
+            sigma = Tensor::cat(&[sigma_f, sigma], 2);
+            features = vec![feature_f, features.remove(0)];
+            done = Tensor::cat(&[mask, done], 2);
+        }
+        // The merged integration's light in front of the first skipped sample of each ray:
+        // rays that still have more than `termination` left are evaluated in full.
+        let (zs, order) = sort_depths(&z);
+        let skipped_sorted = done.logical_not().gather(2, &order, false);
+        let t = transmittance(&gather_samples(&sigma, &order), &zs.unsqueeze(-1), df).squeeze_dim(-1);
+        let left = t.where_self(&skipped_sorted, &t.zeros_like()).amax(&[2i64][..], true);
+        let redo = done.logical_not().logical_and(&left.ge(eps));
+        if bool::try_from(redo.any())? {
+            let (sg, ft, k) = self.query_where(shape, rays, &z, &redo, width);
+            evaluated += k;
+            let m4 = redo.unsqueeze(-1);
+            sigma = sg.where_self(&m4, &sigma);
+            let joined = Tensor::cat(&features, 2);
+            let joined = ft.where_self(&m4, &joined);
+            let n_f = if self.config.hierarchical { self.config.num_steps as i64 } else { 0 };
+            features = if n_f > 0 { vec![joined.narrow(2, 0, n_f), joined.narrow(2, n_f, nc)] } else { vec![joined] };
+            done = done.logical_or(&redo);
+        }
+        let skipped = done.logical_not().gather(2, &order, false);
+        Ok(DensitySamples {
+            sigma: gather_samples(&sigma, &order),
+            features,
+            z: zs,
+            order,
+            skipped: Some(skipped),
+            evaluated,
+        })
     }
 
     /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
@@ -260,7 +406,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
                 let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
                 parts.push(if let Some(grid) = grids.get(i as usize) {
                     self.render_in_grid(&lat, &rays, grid, &noise)?
-                } else if self.config.shade_min_weight > 0.0 {
+                } else if self.config.shade_min_weight > 0.0 || self.config.termination > 0.0 {
                     self.render_staged_chunked(&lat, &rays, &noise)?
                 } else {
                     let out = self.render_rays_chunked(&lat, &rays, &noise)?;

@@ -58,6 +58,11 @@ impl<F: RadianceField> Renderer<'_, F> {
             );
             let w = c.weights.view([b * r * n]);
             let keep = if min_weight > 0.0 { w.gt(min_weight) } else { w.ones_like().to_kind(Kind::Bool) };
+            // Samples early termination skipped carry no light and have no feature.
+            let keep = match &d.skipped {
+                Some(skipped) => keep.logical_and(&skipped.reshape([b * r * n]).logical_not()),
+                None => keep,
+            };
             let flat = keep.nonzero().view([-1]);
             let dirs = self.sample_dirs(&rays.dirs, n).view([b * r * n, 3]);
             let feature = d.sorted_features();
@@ -73,7 +78,7 @@ impl<F: RadianceField> Renderer<'_, F> {
                 last: flat.remainder(n).eq(n - 1),
                 opacity: c.opacity,
                 depth: c.depth,
-                evaluated: b * r * n,
+                evaluated: d.evaluated,
                 kept: flat.size()[0],
             })
         })
