@@ -472,9 +472,11 @@ impl TrainConfig {
         (st.g_lr.unwrap_or(self.optim.g_lr), st.d_lr.unwrap_or(self.optim.d_lr))
     }
 
-    /// The render config of the stage at `step`.
+    /// The render config of the stage at `step` for the training renders. Early
+    /// termination is an inference shortcut (it evaluates without gradients), so training
+    /// renders never use it; the preview grids do when `[render]` asks for it.
     pub fn render_config(&self, step: i64) -> RenderConfig {
-        RenderConfig { num_steps: self.stage(step).num_steps, ..self.render.clone() }
+        RenderConfig { num_steps: self.stage(step).num_steps, termination: 0.0, ..self.render.clone() }
     }
 }
 
@@ -530,6 +532,9 @@ path = "data/x"
         assert_eq!(c.learning_rates(0), (2e-5, 2e-4));
         assert_eq!(c.learning_rates(200), (1e-4, 2e-4));
         assert_eq!(c.render_config(150).num_steps, 16);
+        let with_termination =
+            TrainConfig { render: RenderConfig { termination: 1e-3, ..c.render.clone() }, ..c.clone() };
+        assert_eq!(with_termination.render_config(150).termination, 0.0);
         // The resolved config round-trips through TOML.
         let back = TrainConfig::from_toml(&c.to_toml().unwrap(), Path::new("")).unwrap();
         assert_eq!(back, c);
