@@ -54,12 +54,19 @@ pub fn latent_loss(pred: &Tensor, z: &Tensor) -> Tensor {
 
 /// A capped mode-seeking term (MSGAN, Mao et al. 2019, in DSGAN's clamped form): for the
 /// pairs of consecutive images (2k, 2k+1), which the caller renders at the same pose,
-/// `relu(cap − mean|I_2k − I_2k+1| / mean|z_2k − z_2k+1|)`, averaged over the pairs.
-/// Zero once two codes' images differ by `cap` per unit of code distance, so it pushes a
-/// collapsed generator apart without rewarding difference beyond that.
+/// `relu(cap − mean|P(I_2k) − P(I_2k+1)| / mean|z_2k − z_2k+1|)`, averaged over the pairs,
+/// where P averages `pool × pool` pixel blocks. Zero once two codes' images differ by `cap`
+/// per unit of code distance, so it pushes a collapsed generator apart without rewarding
+/// difference beyond that; the pooling makes silhouettes and colours count, not speckle.
 /// `img: (B, 3, H, W)`, `z: (B, Z)`, B even.
-pub fn mode_seeking(img: &Tensor, z: &Tensor, cap: f64) -> Tensor {
+pub fn mode_seeking(img: &Tensor, z: &Tensor, cap: f64, pool: i64) -> Tensor {
     let b = img.size()[0];
+    let img = if pool > 1 {
+        img.avg_pool2d([pool, pool], [pool, pool], [0, 0], false, true, None)
+    } else {
+        img.shallow_clone()
+    };
+    let img = &img;
     let pairs = |t: &Tensor| t.reshape([b / 2, 2, -1]);
     let (i, c) = (pairs(img), pairs(&z.to_kind(img.kind())));
     let d = |t: &Tensor| (t.select(1, 0) - t.select(1, 1)).abs().mean_dim(1, false, t.kind());
@@ -84,11 +91,11 @@ mod tests {
         let z = Tensor::zeros([4, 3], o);
         let _ = z.get(1).fill_(1.0);
         let _ = z.get(3).fill_(-1.0);
-        let l = f64::try_from(mode_seeking(&img, &z, 0.25)).unwrap();
+        let l = f64::try_from(mode_seeking(&img, &z, 0.25, 1)).unwrap();
         assert!((l - 0.15 / 2.0).abs() < 1e-12, "{l}");
         // The gradient pushes the collapsed pair apart and leaves the other alone.
         let img = img.set_requires_grad(true);
-        let g = Tensor::run_backward(&[mode_seeking(&img, &z, 0.25)], &[&img], false, false).remove(0);
+        let g = Tensor::run_backward(&[mode_seeking(&img, &z, 0.25, 1)], &[&img], false, false).remove(0);
         assert!(f64::try_from(g.get(1).sum(Kind::Double)).unwrap() < 0.0);
         assert_eq!(f64::try_from(g.narrow(0, 2, 2).abs().sum(Kind::Double)).unwrap(), 0.0);
     }

@@ -33,6 +33,9 @@ pub struct LossConfig {
     pub diversity_weight: f64,
     /// Image difference per unit of code distance above which the mode-seeking term is 0.
     pub diversity_cap: f64,
+    /// The mode-seeking term compares images averaged over blocks of this many pixels
+    /// per side (1 = every pixel).
+    pub diversity_pool: i64,
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
@@ -48,6 +51,7 @@ impl Default for LossConfig {
             latent_weight: 0.0,
             diversity_weight: 0.0,
             diversity_cap: 0.1,
+            diversity_pool: 4,
             topk_interval: 2000.0,
             topk_floor: 0.6,
             reg: RegConfig::default(),
@@ -71,6 +75,9 @@ impl LossConfig {
                 "loss.diversity_weight is {}, expected 0 (off) or a positive weight",
                 self.diversity_weight
             )));
+        }
+        if self.diversity_pool < 1 {
+            return Err(Error::Config(format!("loss.diversity_pool is {}, expected at least 1", self.diversity_pool)));
         }
         if !(self.diversity_cap > 0.0 && self.diversity_cap.is_finite()) {
             return Err(Error::Config(format!(
@@ -173,7 +180,7 @@ pub fn generator_image_terms(
                 z.size()
             )));
         }
-        let d = gan::mode_seeking(img, z, cfg.diversity_cap);
+        let d = gan::mode_seeking(img, z, cfg.diversity_cap, cfg.diversity_pool);
         l.total = l.total + &d * cfg.diversity_weight;
         l.terms.push(("g_diversity", d));
     }
@@ -339,5 +346,6 @@ mod tests {
         let e = LossConfig { diversity_weight: -1.0, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("loss.diversity_weight"), "{e}");
         assert!(LossConfig { diversity_cap: 0.0, ..Default::default() }.validate().is_err());
+        assert!(LossConfig { diversity_pool: 0, ..Default::default() }.validate().is_err());
     }
 }
