@@ -12,7 +12,7 @@ use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
 use gdrf_core::field::RadianceField;
 use gdrf_core::render::{GridConfig, Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
-use gdrf_core::{CameraConfig, RenderConfig};
+use gdrf_core::{CameraConfig, Latents, RenderConfig};
 use tch::{Device, Kind, Tensor};
 
 fn shipped() -> (LoadedGenerator, CameraConfig) {
@@ -202,40 +202,36 @@ fn early_termination_stays_within_its_bound() {
     let (m, mcam) = shipped();
     let res = 24;
     let eps = 1e-3;
-    let check = |name: &str, skipped_share: f64, run: &dyn Fn(&RenderConfig) -> (Tensor, Tensor, i64, i64)| {
-        let rc = RenderConfig { num_steps: 16, jitter: false, termination: eps, ..Default::default() };
-        let (pixel, again, evaluated, full) = run(&rc);
+    let rc = RenderConfig { num_steps: 16, jitter: false, termination: eps, ..Default::default() };
+    let noise = Noise { jitter: None, importance: Some(Tensor::rand([1, res * res, 16], (Kind::Float, Device::Cpu))) };
+    let check = |name: &str, skipped_share: f64, (pixel, again, evaluated, full): (Tensor, Tensor, i64, i64)| {
         let err = f64::try_from((&pixel - &again).abs().max()).unwrap();
         println!("{name}: max pixel change {err:.2e} (bound {eps}), {evaluated} of {full} samples evaluated");
         assert!(err <= eps * (1.0 + 1e-3) + 1e-6, "{name}: {err} > {eps}");
         assert!((evaluated as f64) < full as f64 * (1.0 - skipped_share), "{name}: {evaluated} of {full} evaluated");
     };
-    let noise =
-        |n: i64| Noise { jitter: None, importance: Some(Tensor::rand([1, res * res, n], (Kind::Float, Device::Cpu))) };
-    check("analytic chair", 0.01, &|rc| {
-        let r = Renderer::new(&f, &cam, rc).unwrap();
-        let lat = f.latents(1);
-        let rays =
-            Rays::from_poses(&Poses::from_angles(&[(cam.v_mean, 0.6)], Kind::Float, Device::Cpu), res, cam.fov_deg);
-        let nz = noise(16);
-        let side = r.shape_side(&lat.shape, &rays, &nz, 0.0).unwrap();
-        let pixel = r.shade(&side, &lat.appearance).unwrap();
-        let d = tch::no_grad(|| r.density_pass(&lat.shape, &rays, &nz)).unwrap();
-        let again = tch::no_grad(|| r.render_at_depths(&lat, &rays, &d.z)).unwrap().pixel;
-        (pixel, again, side.evaluated, d.z.numel() as i64)
-    });
-    check("shipped model", 0.0, &|rc| {
-        let g = &m.generator;
-        let r = Renderer::new(g, &mcam, rc).unwrap();
-        let z = codes(1, g.cfg.latent_dim as i64, 4);
-        let lat = tch::no_grad(|| g.latents(&z, &z, None));
-        let rays =
-            Rays::from_poses(&Poses::from_angles(&[(mcam.v_mean, 1.6)], Kind::Float, Device::Cpu), res, mcam.fov_deg);
-        let nz = noise(16);
-        let side = r.shape_side(&lat.shape, &rays, &nz, 0.0).unwrap();
-        let pixel = r.shade(&side, &lat.appearance).unwrap();
-        let d = tch::no_grad(|| r.density_pass(&lat.shape, &rays, &nz)).unwrap();
-        let again = tch::no_grad(|| r.render_at_depths(&lat, &rays, &d.z)).unwrap().pixel;
-        (pixel, again, side.evaluated, d.z.numel() as i64)
-    });
+    let rays = |cam: &CameraConfig, yaw: f64| {
+        Rays::from_poses(&Poses::from_angles(&[(cam.v_mean, yaw)], Kind::Float, Device::Cpu), res, cam.fov_deg)
+    };
+    let r = Renderer::new(&f, &cam, &rc).unwrap();
+    check("analytic chair", 0.01, terminated(&r, &f.latents(1), &rays(&cam, 0.6), &noise));
+    let g = &m.generator;
+    let z = codes(1, g.cfg.latent_dim as i64, 4);
+    let lat = tch::no_grad(|| g.latents(&z, &z, None));
+    check("shipped model", 0.0, terminated(&Renderer::new(g, &mcam, &rc).unwrap(), &lat, &rays(&mcam, 1.6), &noise));
+}
+
+/// A render with early termination, the same depths evaluated in full, the samples
+/// evaluated and all samples.
+fn terminated<F: RadianceField>(
+    r: &Renderer<F>,
+    lat: &Latents,
+    rays: &Rays,
+    noise: &Noise,
+) -> (Tensor, Tensor, i64, i64) {
+    let side = r.shape_side(&lat.shape, rays, noise, 0.0).unwrap();
+    let pixel = r.shade(&side, &lat.appearance).unwrap();
+    let d = tch::no_grad(|| r.density_pass(&lat.shape, rays, noise)).unwrap();
+    let again = tch::no_grad(|| r.render_at_depths(lat, rays, &d.z)).unwrap().pixel;
+    (pixel, again, side.evaluated, d.z.numel() as i64)
 }

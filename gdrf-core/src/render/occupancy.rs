@@ -236,20 +236,7 @@ impl<F: RadianceField> Renderer<'_, F> {
                 let sub = rays.select_rays(&on).with_bounds(bounds.index_select(1, &on));
                 let pick = |t: &Option<Tensor>| t.as_ref().map(|t| t.index_select(1, &on));
                 let noise = Noise { jitter: pick(&noise.jitter), importance: pick(&noise.importance) };
-                let c = if self.config.shade_min_weight > 0.0 || self.config.termination > 0.0 {
-                    self.render_staged_chunked(latents, &sub, &noise)?
-                } else {
-                    let out = self.render_rays_chunked(latents, &sub, &noise)?;
-                    let evals = out.z.size()[1] * out.z.size()[2];
-                    RayColours {
-                        pixel: out.pixel,
-                        depth: out.depth,
-                        opacity: out.opacity,
-                        density_evals: evals,
-                        colour_evals: evals,
-                    }
-                };
-                put(&on, c);
+                put(&on, self.render_bundle(latents, &sub, &noise)?);
             }
             if off.size()[0] > 0 {
                 put(&off, self.render_far_end(latents, &rays.select_rays(&off)));

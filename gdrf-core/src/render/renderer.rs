@@ -406,18 +406,8 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
                 let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
                 parts.push(if let Some(grid) = grids.get(i as usize) {
                     self.render_in_grid(&lat, &rays, grid, &noise)?
-                } else if self.config.shade_min_weight > 0.0 || self.config.termination > 0.0 {
-                    self.render_staged_chunked(&lat, &rays, &noise)?
                 } else {
-                    let out = self.render_rays_chunked(&lat, &rays, &noise)?;
-                    let evals = out.z.size()[1] * out.z.size()[2];
-                    RayColours {
-                        pixel: out.pixel,
-                        depth: out.depth,
-                        opacity: out.opacity,
-                        density_evals: evals,
-                        colour_evals: evals,
-                    }
+                    self.render_bundle(&lat, &rays, &noise)?
                 });
             }
             Ok(())
@@ -432,6 +422,24 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
             opacity: to_image(&|p| &p.opacity, 1),
         };
         Ok((image, evals))
+    }
+
+    /// Renders rays `(B, R, 3)` without gradients in chunks: density-first or with early
+    /// termination when the config asks for either (the staged path), else the reference
+    /// sampler; with the queries spent.
+    pub fn render_bundle(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
+        if self.config.shade_min_weight > 0.0 || self.config.termination > 0.0 {
+            return self.render_staged_chunked(latents, rays, noise);
+        }
+        let out = tch::no_grad(|| self.render_rays_chunked(latents, rays, noise))?;
+        let evals = out.z.size()[0] * out.z.size()[1] * out.z.size()[2];
+        Ok(RayColours {
+            pixel: out.pixel,
+            depth: out.depth,
+            opacity: out.opacity,
+            density_evals: evals,
+            colour_evals: evals,
+        })
     }
 
     /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
