@@ -31,9 +31,9 @@ def main():
     cols = len({k[1] for k in panels})
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.0 * nrows), dpi=110, squeeze=False)
-    families = ["reference", "density-first", "early-termination", "grid", "grid+density-first",
-                "grid+density-first+termination"]
-    markers = dict(zip(families, "osvD^P"))
+    families = ["reference", "density-first", "early-termination", "skip-empty", "grid", "grid+density-first",
+                "grid+skip-empty", "grid+skip-empty+density-first"]
+    markers = dict(zip(families, "osv<D^>P"))
     for ax, (scene, res) in zip(axes.flat, panels):
         sel = [r for r in rows if r["scene"] == scene and r["resolution"] == res]
         pts = []

@@ -178,6 +178,10 @@ pub struct RenderConfig {
     /// behind are not evaluated unless the final integration finds more light left there
     /// than this, so a pixel moves by at most this much. 0 = off.
     pub termination: f64,
+    /// Inference only: rays whose coarse weights inside the ray sum to less than this get
+    /// no importance samples (nothing there for them to resolve; their integration is the
+    /// coarse one). 0 = off: every ray gets N.
+    pub importance_skip: f64,
 }
 
 impl Default for RenderConfig {
@@ -194,11 +198,18 @@ impl Default for RenderConfig {
             chunk_points: 1 << 14,
             shade_min_weight: 0.0,
             termination: 0.0,
+            importance_skip: 0.0,
         }
     }
 }
 
 impl RenderConfig {
+    /// Whether inference renders skip queries (density-first shading, early termination or
+    /// skipped importance samples): they then take the staged path.
+    pub fn skips_samples(&self) -> bool {
+        self.shade_min_weight > 0.0 || self.termination > 0.0 || self.importance_skip > 0.0
+    }
+
     pub fn validate(&self) -> Result<()> {
         if self.num_steps < 3 && self.hierarchical {
             return Err(Error::Config(format!(
@@ -217,6 +228,12 @@ impl RenderConfig {
         }
         if self.chunk_points == 0 {
             return Err(Error::Config("render.chunk_points must be at least 1".into()));
+        }
+        if !(self.importance_skip >= 0.0 && self.importance_skip < 1.0) {
+            return Err(Error::Config(format!(
+                "render.importance_skip is {}, expected a weight in [0, 1) (0 = off)",
+                self.importance_skip
+            )));
         }
         if !(self.termination >= 0.0 && self.termination < 1.0) {
             return Err(Error::Config(format!(

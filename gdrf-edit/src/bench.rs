@@ -57,6 +57,7 @@ struct Setting {
     steps: usize,
     min_weight: f64,
     termination: f64,
+    importance_skip: f64,
     grid: Option<GridConfig>,
 }
 
@@ -71,27 +72,34 @@ fn release_steps(res: i64) -> usize {
 
 fn settings(res: i64) -> Vec<Setting> {
     let n = release_steps(res);
-    let grid = Some(GridConfig::default());
-    let s = |name: &str, steps: usize, min_weight: f64, termination: f64, grid: Option<GridConfig>| Setting {
-        name: format!("{name} N={steps}"),
+    // family, N, density-first threshold, termination, importance skip, grid
+    let s = |family: &str, steps: usize, min_weight: f64, termination: f64, importance_skip: f64, grid: bool| Setting {
+        name: format!("{family} N={steps}"),
         steps,
         min_weight,
         termination,
-        grid,
+        importance_skip,
+        grid: grid.then(GridConfig::default),
     };
-    let mut v =
-        vec![s("reference", n, 0.0, 0.0, None), s("reference", 24, 0.0, 0.0, None), s("reference", 12, 0.0, 0.0, None)];
-    v.push(s("density-first", n, 1e-3, 0.0, None));
-    v.push(s("density-first", 24, 1e-3, 0.0, None));
-    v.push(s("early-termination", n, 0.0, 1e-3, None));
-    for steps in [n, 24, 12, 8] {
-        v.push(s("grid", steps, 0.0, 0.0, grid));
-    }
-    for steps in [24, 12, 8] {
-        v.push(s("grid+density-first", steps, 1e-3, 0.0, grid));
-    }
-    v.push(s("grid+density-first+termination", 12, 1e-3, 1e-3, grid));
-    v
+    vec![
+        s("reference", n, 0.0, 0.0, 0.0, false),
+        s("reference", 24, 0.0, 0.0, 0.0, false),
+        s("reference", 12, 0.0, 0.0, 0.0, false),
+        s("density-first", n, 1e-3, 0.0, 0.0, false),
+        s("density-first", 24, 1e-3, 0.0, 0.0, false),
+        s("early-termination", n, 0.0, 1e-3, 0.0, false),
+        s("skip-empty", n, 0.0, 0.0, 1e-3, false),
+        s("skip-empty", 24, 0.0, 0.0, 1e-3, false),
+        s("grid", n, 0.0, 0.0, 0.0, true),
+        s("grid", 24, 0.0, 0.0, 0.0, true),
+        s("grid", 12, 0.0, 0.0, 0.0, true),
+        s("grid", 8, 0.0, 0.0, 0.0, true),
+        s("grid+density-first", 24, 1e-3, 0.0, 0.0, true),
+        s("grid+density-first", 12, 1e-3, 0.0, 0.0, true),
+        s("grid+skip-empty", 24, 0.0, 0.0, 1e-3, true),
+        s("grid+skip-empty", 12, 0.0, 0.0, 1e-3, true),
+        s("grid+skip-empty+density-first", 12, 1e-3, 0.0, 1e-3, true),
+    ]
 }
 
 /// Stratified importance uniforms (k + ½)/N and no jitter: deterministic renders that
@@ -287,6 +295,7 @@ fn run_scene<F: RadianceField>(
             "steps": s.steps,
             "min_weight": s.min_weight,
             "termination": s.termination,
+            "importance_skip": s.importance_skip,
             "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation})),
             "ms_per_image": ms,
             "ms_per_image_runs": times,

@@ -98,6 +98,10 @@ struct RenderArgs {
     /// pixel moves by more than it. 0 = off.
     #[arg(long, default_value_t = 0.0)]
     termination: f64,
+    /// Rays whose coarse samples find less than this much light inside the ray get no
+    /// importance samples (their image is then their coarse render). 0 = off.
+    #[arg(long, default_value_t = 0.0)]
+    skip_empty: f64,
     /// Samples evaluated at once; bounds memory. Small chunks are also faster on CPU.
     #[arg(long, default_value_t = 1 << 14)]
     chunk_points: usize,
@@ -171,6 +175,7 @@ fn render(a: RenderArgs) -> Result<()> {
         chunk_points: a.chunk_points,
         shade_min_weight: a.min_weight,
         termination: a.termination,
+        importance_skip: a.skip_empty,
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;

@@ -189,20 +189,54 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         let (sigma_c, feature_c) = gen.sigma_feature(&at(&z_c), shape, self.field);
         let sigma_c = sigma_c.view([b, r, nc, 1]);
         let feature_c = feature_c.view([b, r, nc, -1]);
+        let mut evaluated = b * r * nc;
         let (z, sigma, features) = if cfg.hierarchical {
             let z_f = tch::no_grad(|| self.importance(&sigma_c, &z_c, noise));
-            let (sigma_f, feature_f) = gen.sigma_feature(&at(&z_f), shape, self.field);
-            (
-                Tensor::cat(&[z_f, z_c], 2),
-                Tensor::cat(&[sigma_f.view([b, r, n, 1]), sigma_c], 2),
-                vec![feature_f.view([b, r, n, -1]), feature_c],
-            )
+            let (z_f, sigma_f, feature_f) = if cfg.importance_skip > 0.0 {
+                let (z_f, sigma_f, feature_f, k) =
+                    tch::no_grad(|| self.importance_where_needed(shape, rays, &z_c, &sigma_c, &feature_c, &z_f));
+                evaluated += k;
+                (z_f, sigma_f, feature_f)
+            } else {
+                let (sigma_f, feature_f) = gen.sigma_feature(&at(&z_f), shape, self.field);
+                evaluated += b * r * n;
+                (z_f, sigma_f.view([b, r, n, 1]), feature_f.view([b, r, n, -1]))
+            };
+            (Tensor::cat(&[z_f, z_c], 2), Tensor::cat(&[sigma_f, sigma_c], 2), vec![feature_f, feature_c])
         } else {
             (z_c, sigma_c, vec![feature_c])
         };
-        let evaluated = z.numel() as i64;
         let (z, order) = sort_depths(&z);
         Ok(DensitySamples { sigma: gather_samples(&sigma, &order), features, z, order, skipped: None, evaluated })
+    }
+
+    /// The importance samples `z_f: (B, R, N)` of the rays whose coarse weights inside the
+    /// ray (the ones the importance pdf reads: all but the first and last) sum to at least
+    /// `importance_skip`. The other rays' importance samples duplicate their first N coarse
+    /// samples — depth, density and feature — so that their merged integration is exactly
+    /// their coarse one, at no query. Returns depths, densities `(B, R, N, 1)`, features
+    /// `(B, R, N, F)` and the queries spent.
+    fn importance_where_needed(
+        &self,
+        shape: &Film,
+        rays: &Rays,
+        z_c: &Tensor,
+        sigma_c: &Tensor,
+        feature_c: &Tensor,
+        z_f: &Tensor,
+    ) -> (Tensor, Tensor, Tensor, i64) {
+        let (nc, n, width) = (z_c.size()[2], z_f.size()[2], feature_c.size()[3]);
+        let w = weights_from_density(sigma_c, &z_c.unsqueeze(-1), self.config.delta_final);
+        let interior = w.narrow(2, 1, nc - 2).sum_dim_intlist(2, false, w.kind()); // (B, R, 1)
+        let need = interior.ge(self.config.importance_skip);
+        let (sigma, feature, k) = self.query_where(shape, rays, z_f, &need.expand_as(z_f), width);
+        let need4 = need.unsqueeze(-1);
+        (
+            z_f.where_self(&need, &z_c.narrow(2, 0, n)),
+            sigma.where_self(&need4, &sigma_c.narrow(2, 0, n).to_kind(sigma.kind())),
+            feature.where_self(&need4, &feature_c.narrow(2, 0, n).to_kind(feature.kind())),
+            k,
+        )
     }
 
     /// N importance depths `(B, R, N)` from the coarse densities `(B, R, Nc, 1)` at `z_c`.
@@ -424,11 +458,11 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         Ok((image, evals))
     }
 
-    /// Renders rays `(B, R, 3)` without gradients in chunks: density-first or with early
-    /// termination when the config asks for either (the staged path), else the reference
-    /// sampler; with the queries spent.
+    /// Renders rays `(B, R, 3)` without gradients in chunks: the staged path when the
+    /// config skips queries ([`RenderConfig::skips_samples`]), else the reference sampler;
+    /// with the queries spent.
     pub fn render_bundle(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
-        if self.config.shade_min_weight > 0.0 || self.config.termination > 0.0 {
+        if self.config.skips_samples() {
             return self.render_staged_chunked(latents, rays, noise);
         }
         let out = tch::no_grad(|| self.render_rays_chunked(latents, rays, noise))?;

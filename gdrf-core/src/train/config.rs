@@ -473,10 +473,16 @@ impl TrainConfig {
     }
 
     /// The render config of the stage at `step` for the training renders. Early
-    /// termination is an inference shortcut (it evaluates without gradients), so training
-    /// renders never use it; the preview grids do when `[render]` asks for it.
+    /// termination and skipped importance samples are inference shortcuts (they evaluate
+    /// without gradients), so training renders never use them; the preview grids do when
+    /// `[render]` asks for them.
     pub fn render_config(&self, step: i64) -> RenderConfig {
-        RenderConfig { num_steps: self.stage(step).num_steps, termination: 0.0, ..self.render.clone() }
+        RenderConfig {
+            num_steps: self.stage(step).num_steps,
+            termination: 0.0,
+            importance_skip: 0.0,
+            ..self.render.clone()
+        }
     }
 }
 
