@@ -61,6 +61,20 @@ struct Setting {
     grid: Option<GridConfig>,
 }
 
+impl Setting {
+    /// The renderer's config of this setting (no jitter: deterministic renders).
+    fn render_config(&self) -> RenderConfig {
+        RenderConfig {
+            num_steps: self.steps,
+            jitter: false,
+            shade_min_weight: self.min_weight,
+            termination: self.termination,
+            importance_skip: self.importance_skip,
+            ..Default::default()
+        }
+    }
+}
+
 /// The release trains and renders with N = 36 at 64² and N = 64 at 128².
 fn release_steps(res: i64) -> usize {
     if res <= 64 {
@@ -253,8 +267,7 @@ fn run_scene<F: RadianceField>(
     let mut rows = Vec::new();
     let mut reference_images = Tensor::zeros([0], (Kind::Float, dev));
     for s in &list {
-        let rc =
-            RenderConfig { num_steps: s.steps, jitter: false, shade_min_weight: s.min_weight, ..Default::default() };
+        let rc = s.render_config();
         // Grids are built once per shape, timed apart from the renders that reuse them.
         let (grids, grid_ms, grid_queries) = match s.grid {
             Some(cfg) => {
