@@ -34,6 +34,8 @@ pub enum Purpose {
     EvalSubsets = 16,
     ProbeBatches = 17,
     ProbeInit = 18,
+    /// gdrf-edit's jitter and importance uniforms, shared by every image of a view.
+    EditNoise = 19,
 }
 
 /// A source of uniform and normal tensors.

@@ -1,6 +1,7 @@
 //! gdrf-edit: render a GDRF generator from any viewpoint, with shape and appearance
 //! taken from different codes.
 mod bench;
+mod swap;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -33,6 +34,15 @@ enum Command {
     /// the trained model and on an analytic scene, with the PyTorch reference timed in the
     /// same run. Writes render.json, render.png (the Pareto plot) and render.md.
     Bench(bench::BenchArgs),
+    /// The shape of one source with the appearance of another, at one or more views:
+    /// frame-NNN.png per view and strip.png. A source is seed:N, a feature file
+    /// (.safetensors, from gdrf-invert or `features`) or a photo (once gdrf-invert lands).
+    Swap(swap::SwapArgs),
+    /// A swap matrix over several sources: row i has the shape of source i, column j the
+    /// appearance of source j. Each row's shape side is computed once and re-shaded.
+    Matrix(swap::MatrixArgs),
+    /// Write the feature file of a seed (the format gdrf-invert writes).
+    Features(swap::FeaturesArgs),
 }
 
 #[derive(Args)]
@@ -120,6 +130,38 @@ struct RenderArgs {
     depth_out: Option<PathBuf>,
 }
 
+/// A loaded generator with what rendering and editing need beside it.
+pub struct Model {
+    pub _vs: nn::VarStore,
+    pub generator: Generator,
+    pub camera: CameraConfig,
+    pub device: tch::Device,
+    /// The generator's identity, which feature files carry.
+    pub id: String,
+}
+
+/// The generator of `checkpoint`, or a randomly initialised one (the release's
+/// initialisation, seeded by `init_seed`) without one.
+pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch::Device) -> Result<Model> {
+    let (vs, generator, header) = match checkpoint {
+        Some(p) => {
+            let l =
+                load_generator(p, dev, Kind::Float).with_context(|| format!("loading --checkpoint {}", p.display()))?;
+            (l.vs, l.generator, l.header)
+        }
+        None => {
+            eprintln!("no --checkpoint: a randomly initialised generator (seed {init_seed})");
+            tch::manual_seed(init_seed);
+            let vs = nn::VarStore::new(dev);
+            let cfg = GeneratorConfig::default();
+            let g = Generator::new(&vs.root(), &cfg)?;
+            (vs, g, Header::generator(cfg, Some(CameraConfig::chair())))
+        }
+    };
+    let id = gdrf_core::edit::generator_id(&vs, &generator);
+    Ok(Model { _vs: vs, generator, camera: header.camera.clone().unwrap_or_default(), device: dev, id })
+}
+
 fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e:#}");
@@ -131,6 +173,9 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => render(a),
         Command::Bench(a) => bench::bench(a),
+        Command::Swap(a) => swap::swap(a),
+        Command::Matrix(a) => swap::matrix(a),
+        Command::Features(a) => swap::features(a),
     }
 }
 
@@ -153,21 +198,7 @@ fn render(a: RenderArgs) -> Result<()> {
     }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
-    let (_vs, generator, header) = match &a.checkpoint {
-        Some(p) => {
-            let l = load_generator(p, dev, Kind::Float).with_context(|| "loading --checkpoint".to_string())?;
-            (l.vs, l.generator, l.header)
-        }
-        None => {
-            eprintln!("no --checkpoint: rendering a randomly initialised generator (seed {})", a.init_seed);
-            tch::manual_seed(a.init_seed);
-            let vs = nn::VarStore::new(dev);
-            let cfg = GeneratorConfig::default();
-            let g = Generator::new(&vs.root(), &cfg)?;
-            (vs, g, Header::generator(cfg, Some(CameraConfig::chair())))
-        }
-    };
-    let camera = header.camera.clone().unwrap_or_default();
+    let Model { generator, camera, .. } = load_model(a.checkpoint.as_deref(), a.init_seed, dev)?;
     let config = RenderConfig {
         num_steps: a.steps,
         jitter: !a.no_jitter,

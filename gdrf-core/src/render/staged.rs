@@ -87,28 +87,41 @@ impl<F: RadianceField> Renderer<'_, F> {
     /// Density-first rendering of rays `(B, R, 3)` in chunks of about `chunk_points`
     /// samples, shading only the samples whose weight exceeds `shade_min_weight`.
     pub fn render_staged_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
+        let sides = self.shape_sides(&latents.shape, rays, noise, self.config.shade_min_weight)?;
+        let parts = sides
+            .into_iter()
+            .map(|side| {
+                Ok(RayColours {
+                    pixel: self.shade(&side, &latents.appearance)?,
+                    depth: side.depth,
+                    opacity: side.opacity,
+                    density_evals: side.evaluated,
+                    colour_evals: side.kept,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(RayColours::concat(parts))
+    }
+
+    /// The shape side of rays `(B, R, 3)` in ray chunks of about `chunk_points` samples (so
+    /// that any image fits in bounded memory), to keep and shade with [`Self::shade_chunks`].
+    pub fn shape_sides(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<Vec<ShapeSide>> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
         let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b);
-        let mut parts = Vec::new();
+        let mut sides = Vec::new();
         let mut start = 0;
         while start < r {
             let len = chunk.min(r - start);
-            let side = self.shape_side(
-                &latents.shape,
-                &rays.narrow(start, len),
-                &noise.slice(0, b, start, len),
-                self.config.shade_min_weight,
-            )?;
-            parts.push(RayColours {
-                pixel: self.shade(&side, &latents.appearance)?,
-                depth: side.depth,
-                opacity: side.opacity,
-                density_evals: side.evaluated,
-                colour_evals: side.kept,
-            });
+            sides.push(self.shape_side(shape, &rays.narrow(start, len), &noise.slice(0, b, start, len), min_weight)?);
             start += len;
         }
-        Ok(RayColours::concat(parts))
+        Ok(sides)
+    }
+
+    /// Pixels `(B, R, 3)` of kept shape sides (in ray order) under `appearance`.
+    pub fn shade_chunks(&self, sides: &[ShapeSide], appearance: &Film) -> Result<Tensor> {
+        let parts = sides.iter().map(|s| self.shade(s, appearance)).collect::<Result<Vec<_>>>()?;
+        Ok(Tensor::cat(&parts, 1))
     }
 
     /// Colours `(B, R, 3)` of a shape side under `appearance` (one row per image): the
