@@ -64,6 +64,8 @@ pub struct Features {
     pub appearance: Film,
     /// (pitch, yaw) in radians, where the source was seen (inversion estimates it).
     pub pose: Option<(f64, f64)>,
+    /// `(1, latent)`: the code, for sources that have one (seeds); interpolation slerps it.
+    pub z: Option<Tensor>,
 }
 
 #[derive(Debug, Serialize, Deserialize)]
@@ -78,7 +80,7 @@ impl Features {
     pub fn from_seed(g: &Generator, seed: i64) -> Self {
         let (kind, device) = g.kind_device();
         let z = seeded_randn(&[1, g.cfg.latent_dim as i64], seed).to_kind(kind).to_device(device);
-        tch::no_grad(|| Self { w_s: g.shape_w(&z), appearance: g.appearance_from_z(&z, None), pose: None })
+        tch::no_grad(|| Self { w_s: g.shape_w(&z), appearance: g.appearance_from_z(&z, None), pose: None, z: Some(z) })
     }
 
     /// Writes the features atomically, tied to generator identity `generator_id`.
@@ -118,6 +120,7 @@ impl Features {
             w_s: take("w_s", [1, g.cfg.mapping_hidden_dim as i64])?,
             appearance: Film { gamma: take("gamma_a", [1, colour])?, beta: take("beta_a", [1, colour])? },
             pose: header.pose,
+            z: None,
         })
     }
 
@@ -132,6 +135,53 @@ impl Features {
             ))),
         }
     }
+}
+
+/// What an interpolation moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Interpolate {
+    Shape,
+    Appearance,
+    Both,
+}
+
+/// The features a fraction `t` of the way from `a` to `b`, moving only what `what` says
+/// (the rest stays `a`'s): codes are slerped when both sources have one (seeds), features
+/// lerped otherwise.
+pub fn interpolate(g: &Generator, a: &Features, b: &Features, t: f64, what: Interpolate) -> Features {
+    tch::no_grad(|| {
+        let by_code = match (&a.z, &b.z) {
+            (Some(za), Some(zb)) => Some(slerp(za, zb, t)),
+            _ => None,
+        };
+        let lerp = |x: &Tensor, y: &Tensor| x + (y - x) * t;
+        let (shape, app) = (what != Interpolate::Appearance, what != Interpolate::Shape);
+        let w_s = match (&by_code, shape) {
+            (_, false) => a.w_s.shallow_clone(),
+            (Some(z), true) => g.shape_w(z),
+            (None, true) => lerp(&a.w_s, &b.w_s),
+        };
+        let appearance = match (&by_code, app) {
+            (_, false) => Film { gamma: a.appearance.gamma.shallow_clone(), beta: a.appearance.beta.shallow_clone() },
+            (Some(z), true) => g.appearance_from_z(z, None),
+            (None, true) => Film {
+                gamma: lerp(&a.appearance.gamma, &b.appearance.gamma),
+                beta: lerp(&a.appearance.beta, &b.appearance.beta),
+            },
+        };
+        Features { w_s, appearance, pose: a.pose, z: None }
+    })
+}
+
+/// Spherical interpolation of codes `(1, Z)` (linear when they are parallel).
+pub fn slerp(a: &Tensor, b: &Tensor, t: f64) -> Tensor {
+    let (na, nb) = (a.norm().double_value(&[]), b.norm().double_value(&[]));
+    let cos = (a * b).sum(a.kind()).double_value(&[]) / (na * nb).max(1e-12);
+    let omega = cos.clamp(-1.0, 1.0).acos();
+    if omega.sin().abs() < 1e-6 {
+        return a + (b - a) * t;
+    }
+    a * (((1.0 - t) * omega).sin() / omega.sin()) + b * ((t * omega).sin() / omega.sin())
 }
 
 /// Modulations for rendering: the shape of `shape` and the appearance of `appearance`,
@@ -235,6 +285,7 @@ mod tests {
         assert!(e.contains("a.safetensors") && e.contains(&id) && e.contains(&id2), "{e}");
         // A wrongly shaped tensor is named.
         let wrong = Features { w_s: Tensor::zeros([1, 5], (Kind::Float, Device::Cpu)), ..Features::from_seed(&g, 3) };
+        assert!(back.z.is_none());
         wrong.save(&path, &id).unwrap();
         let e = Features::load(&path, &g, &id).unwrap_err().to_string();
         assert!(e.contains("'w_s'") && e.contains("[1, 16]"), "{e}");
@@ -256,6 +307,15 @@ mod tests {
         let got = latents(&g, &f, &f, Some(&t));
         assert!(got.shape.gamma.allclose(&want.shape.gamma, 1e-5, 1e-5, false));
         assert!(got.appearance.gamma.allclose(&want.appearance.gamma, 1e-5, 1e-5, false));
+        // Interpolation: the ends are the sources; moving only the appearance keeps the shape.
+        let b = Features::from_seed(&g, 8);
+        let start = interpolate(&g, &f, &b, 0.0, Interpolate::Both);
+        let end = interpolate(&g, &f, &b, 1.0, Interpolate::Both);
+        assert!(start.w_s.allclose(&f.w_s, 1e-5, 1e-5, false) && end.w_s.allclose(&b.w_s, 1e-5, 1e-5, false));
+        let half = interpolate(&g, &f, &b, 0.5, Interpolate::Appearance);
+        assert!(half.w_s.equal(&f.w_s) && !half.appearance.gamma.allclose(&f.appearance.gamma, 1e-6, 1e-6, false));
+        let s = slerp(&Tensor::from_slice(&[1.0f32, 0.0]), &Tensor::from_slice(&[0.0f32, 1.0]), 0.5);
+        assert!(s.allclose(&Tensor::from_slice(&[0.5f32.sqrt(), 0.5f32.sqrt()]), 1e-6, 1e-6, false));
         let e = Features::resolve(&Source::Image("x.png".into()), &g, "id").unwrap_err().to_string();
         assert!(e.contains("x.png") && e.contains("gdrf-invert"), "{e}");
     }

@@ -43,3 +43,43 @@ pub fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
         .map_err(|e| Error::Invalid(format!("{}: PNG encoding failed: {e}", path.display())))?;
     write_atomic(path, &bytes)
 }
+
+/// Writes frames as an endlessly looping animated GIF (`delay_ms` per frame), atomically.
+pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Result<()> {
+    use image::codecs::gif::{GifEncoder, Repeat};
+    let fail = |e: image::ImageError| Error::Invalid(format!("{}: GIF encoding failed: {e}", path.display()));
+    let mut bytes = Vec::new();
+    {
+        let mut enc = GifEncoder::new_with_speed(&mut bytes, 10);
+        enc.set_repeat(Repeat::Infinite).map_err(fail)?;
+        let delay = image::Delay::from_numer_denom_ms(delay_ms, 1);
+        for f in frames {
+            let rgba = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
+            enc.encode_frame(image::Frame::from_parts(rgba, 0, 0, delay)).map_err(fail)?;
+        }
+    }
+    write_atomic(path, &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::AnimationDecoder;
+
+    #[test]
+    fn gifs_hold_every_frame() {
+        let frames: Vec<image::RgbImage> =
+            (0..3u8).map(|i| image::RgbImage::from_pixel(6, 4, image::Rgb([80 * i, 0, 255 - 80 * i]))).collect();
+        let path = std::env::temp_dir().join(format!("gdrf-io-{}.gif", std::process::id()));
+        save_gif(&path, &frames, 100).unwrap();
+        let dec =
+            image::codecs::gif::GifDecoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap())).unwrap();
+        let back = dec.into_frames().collect_frames().unwrap();
+        assert_eq!(back.len(), 3);
+        assert_eq!(back[2].buffer().dimensions(), (6, 4));
+        // Pure red, green and blue mixes survive the palette to within its rounding.
+        let p = back[2].buffer().get_pixel(0, 0);
+        assert!((p[0] as i32 - 160).abs() <= 8 && (p[2] as i32 - 95).abs() <= 8, "{p:?}");
+        std::fs::remove_file(&path).unwrap();
+    }
+}

@@ -43,6 +43,9 @@ enum Command {
     Matrix(swap::MatrixArgs),
     /// Write the feature file of a seed (the format gdrf-invert writes).
     Features(swap::FeaturesArgs),
+    /// Interpolate the shape, the appearance or both between two sources at one view:
+    /// frame-NNN.png, strip.png and sequence.gif.
+    Interp(swap::InterpArgs),
 }
 
 #[derive(Args)]
@@ -176,6 +179,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Swap(a) => swap::swap(a),
         Command::Matrix(a) => swap::matrix(a),
         Command::Features(a) => swap::features(a),
+        Command::Interp(a) => swap::interp(a),
     }
 }
 

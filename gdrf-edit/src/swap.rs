@@ -6,7 +6,7 @@ use crate::{load_model, Model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
-use gdrf_core::edit::{latents, Features, Source};
+use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
 use gdrf_core::{device, io, Latents, RenderConfig};
@@ -33,8 +33,9 @@ pub struct ViewArgs {
     /// Image size in pixels (square).
     #[arg(long, default_value_t = 128)]
     resolution: i64,
-    /// Views on a turntable (yaw spread evenly over 360° from --yaw).
-    #[arg(long, default_value_t = 1)]
+    /// Views on a turntable (yaw spread evenly over 360° from --yaw at --pitch); --orbit is
+    /// the same.
+    #[arg(long, visible_alias = "orbit", default_value_t = 1)]
     views: usize,
     /// Camera pitch in degrees from the +y axis (default: the camera's mean pitch).
     #[arg(long)]
@@ -103,7 +104,8 @@ pub struct SwapArgs {
     model: ModelArgs,
     #[command(flatten)]
     view: ViewArgs,
-    /// Output folder: frame-NNN.png per view and strip.png with all views.
+    /// Output folder: frame-NNN.png per view, strip.png with all views and, for more than
+    /// one view, swap.gif.
     #[arg(long, short, default_value = "swap")]
     out: PathBuf,
     /// Write into an output folder that already holds files.
@@ -183,8 +185,7 @@ pub fn swap(a: SwapArgs) -> Result<()> {
             .with_context(|| format!("writing {}", path.display()))?;
         frames.push(img.rgb);
     }
-    let strip = io::grid(&Tensor::cat(&frames, 0), frames.len() as i64);
-    io::save_png(&a.out.join("strip.png"), &io::to_rgb8(&strip, false)?)?;
+    write_sequence(&a.out, &frames)?;
     println!(
         "shape of {:?} with the appearance of {:?}: {} view(s) of {r}×{r} in {:.2} s ({threads} threads) -> {}",
         a.shape_from,
@@ -278,6 +279,109 @@ pub fn swap_matrix_cached(
         }
     }
     Ok(cells)
+}
+
+/// strip.png with every frame `(1, 3, H, W)` in a row and, for more than one, an animated
+/// GIF named after the folder's purpose.
+fn write_sequence(dir: &Path, frames: &[Tensor]) -> Result<()> {
+    let strip = io::grid(&Tensor::cat(frames, 0), frames.len() as i64);
+    io::save_png(&dir.join("strip.png"), &io::to_rgb8(&strip, false)?)?;
+    if frames.len() > 1 {
+        let imgs = frames.iter().map(|f| io::to_rgb8(&f.get(0), false)).collect::<gdrf_core::Result<Vec<_>>>()?;
+        io::save_gif(&dir.join("sequence.gif"), &imgs, 120)?;
+    }
+    Ok(())
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum What {
+    Shape,
+    Appearance,
+    Both,
+}
+
+#[derive(Args)]
+pub struct InterpArgs {
+    /// The first source (seed:N or a feature file).
+    #[arg(long, value_name = "SOURCE")]
+    from: Source,
+    /// The last source.
+    #[arg(long, value_name = "SOURCE")]
+    to: Source,
+    /// What moves from the first source to the last: the shape, the appearance or both
+    /// (the rest stays the first source's). Codes of seeds are slerped, features lerped.
+    #[arg(long, value_enum, default_value = "both")]
+    what: What,
+    /// Frames, both ends included.
+    #[arg(long, default_value_t = 8)]
+    frames: usize,
+    #[command(flatten)]
+    model: ModelArgs,
+    #[command(flatten)]
+    view: ViewArgs,
+    /// Output folder: frame-NNN.png, strip.png and sequence.gif.
+    #[arg(long, short, default_value = "interp")]
+    out: PathBuf,
+    /// Write into an output folder that already holds files.
+    #[arg(long)]
+    force: bool,
+}
+
+pub fn interp(a: InterpArgs) -> Result<()> {
+    a.view.check()?;
+    if !(2..=240).contains(&a.frames) {
+        bail!("--frames {}: expected 2 to 240", a.frames);
+    }
+    let (model, threads) = open(&a.model)?;
+    let g = &model.generator;
+    let (from, to) = (resolve(&model, &a.from, "--from")?, resolve(&model, &a.to, "--to")?);
+    output_dir(&a.out, a.force)?;
+    let what = match a.what {
+        What::Shape => Interpolate::Shape,
+        What::Appearance => Interpolate::Appearance,
+        What::Both => Interpolate::Both,
+    };
+    let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
+    let rc = a.view.render_config();
+    let renderer = Renderer::new(g, &model.camera, &rc)?;
+    let pose = a.view.poses(model.camera.v_mean)[0];
+    let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
+    let noise = a.view.noise(0, a.view.resolution * a.view.resolution, model.device);
+    let start = Instant::now();
+    // Only the appearance moves: one shape side, re-shaded per frame.
+    let sides = if what == Interpolate::Appearance {
+        let rays = Rays::from_poses(&poses, a.view.resolution, model.camera.fov_deg);
+        Some(renderer.shape_sides(&latents(g, &from, &from, trunc.as_ref()).shape, &rays, &noise, 0.0)?)
+    } else {
+        None
+    };
+    let mut frames = Vec::new();
+    for k in 0..a.frames {
+        let t = k as f64 / (a.frames - 1) as f64;
+        let f = interpolate(g, &from, &to, t, what);
+        let lat = latents(g, &f, &f, trunc.as_ref());
+        let rgb = match &sides {
+            Some(sides) => {
+                let res = a.view.resolution;
+                renderer.shade_chunks(sides, &lat.appearance)?.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0
+            }
+            None => renderer.render_image(&lat, &poses, a.view.resolution, &noise)?.rgb,
+        };
+        let path = a.out.join(format!("frame-{k:03}.png"));
+        io::save_png(&path, &io::to_rgb8(&rgb.get(0), false)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+        frames.push(rgb);
+    }
+    write_sequence(&a.out, &frames)?;
+    println!(
+        "{} frames from {:?} to {:?} in {:.2} s ({threads} threads) -> {}",
+        a.frames,
+        a.from,
+        a.to,
+        start.elapsed().as_secs_f64(),
+        a.out.display()
+    );
+    Ok(())
 }
 
 pub fn features(a: FeaturesArgs) -> Result<()> {
