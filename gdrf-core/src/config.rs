@@ -102,6 +102,16 @@ impl Default for CameraConfig {
 }
 
 impl CameraConfig {
+    /// The camera of a dataset preset: `chair`, `car` or `carla` (the release's configs).
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "chair" => Ok(Self::chair()),
+            "car" => Ok(Self::car()),
+            "carla" => Ok(Self::carla()),
+            other => Err(Error::Config(format!("camera preset '{other}': expected chair, car or carla"))),
+        }
+    }
+
     pub fn chair() -> Self {
         Self {
             fov_deg: 50.0,
@@ -271,6 +281,8 @@ mod tests {
 
     #[test]
     fn presets_validate() {
+        assert_eq!(CameraConfig::preset("car").unwrap(), CameraConfig::car());
+        assert!(CameraConfig::preset("plane").unwrap_err().to_string().contains("'plane'"));
         for c in [CameraConfig::chair(), CameraConfig::car(), CameraConfig::carla()] {
             c.validate().unwrap();
         }

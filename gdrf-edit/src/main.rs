@@ -121,6 +121,10 @@ struct RenderArgs {
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     device: String,
+    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
+    /// camera stored with the checkpoint.
+    #[arg(long, value_parser = ["chair", "car", "carla"])]
+    camera: Option<String>,
     /// Output PNG (the grid of images).
     #[arg(long, short, default_value = "render.png")]
     out: PathBuf,
@@ -203,6 +207,10 @@ fn render(a: RenderArgs) -> Result<()> {
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
     let Model { generator, camera, .. } = load_model(a.checkpoint.as_deref(), a.init_seed, dev)?;
+    let camera = match &a.camera {
+        Some(name) => CameraConfig::preset(name)?,
+        None => camera,
+    };
     let config = RenderConfig {
         num_steps: a.steps,
         jitter: !a.no_jitter,

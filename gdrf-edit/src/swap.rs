@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
+use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
 use gdrf_core::{device, io, Latents, RenderConfig};
@@ -26,6 +27,10 @@ pub struct ModelArgs {
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     device: String,
+    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
+    /// camera stored with the checkpoint.
+    #[arg(long, value_parser = ["chair", "car", "carla"])]
+    camera: Option<String>,
 }
 
 #[derive(Args)]
@@ -53,9 +58,32 @@ pub struct ViewArgs {
     /// same ones, so images differ only by what was edited.
     #[arg(long, default_value_t = 0)]
     noise_seed: u64,
+    /// `release`: the authors' render script — N = 96, ψ = 0.7, last sample painted white
+    /// (overrides --steps and --psi).
+    #[arg(long, value_parser = ["release"])]
+    preset: Option<String>,
+    /// Ablations (the paper's template figure): without the deformation Δx and/or the
+    /// correction Δσ.
+    #[arg(long)]
+    no_deformation: bool,
+    #[arg(long)]
+    no_correction: bool,
 }
 
 impl ViewArgs {
+    /// Applies `--preset`.
+    fn resolved(mut self) -> Self {
+        if self.preset.as_deref() == Some("release") {
+            self.steps = 96;
+            self.psi = 0.7;
+        }
+        self
+    }
+
+    fn field(&self) -> FieldOptions {
+        FieldOptions { no_deformation: self.no_deformation, no_correction: self.no_correction, ..Default::default() }
+    }
+
     fn check(&self) -> Result<()> {
         if !(8..=4096).contains(&self.resolution) {
             bail!("--resolution {}: expected 8 to 4096 pixels", self.resolution);
@@ -81,7 +109,8 @@ impl ViewArgs {
     }
 
     fn render_config(&self) -> RenderConfig {
-        RenderConfig { num_steps: self.steps, ..Default::default() }
+        let force_last_white = self.preset.as_deref() == Some("release");
+        RenderConfig { num_steps: self.steps, force_last_white, ..Default::default() }
     }
 
     /// The jitter and importance uniforms of view `k`, shared by every image of that view.
@@ -147,7 +176,11 @@ pub struct FeaturesArgs {
 fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     let threads = device::init_threads();
     let dev = device::select(&m.device)?;
-    Ok((load_model(m.checkpoint.as_deref(), m.init_seed, dev)?, threads))
+    let mut model = load_model(m.checkpoint.as_deref(), m.init_seed, dev)?;
+    if let Some(name) = &m.camera {
+        model.camera = gdrf_core::CameraConfig::preset(name)?;
+    }
+    Ok((model, threads))
 }
 
 fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
@@ -163,7 +196,8 @@ fn output_dir(dir: &Path, force: bool) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))
 }
 
-pub fn swap(a: SwapArgs) -> Result<()> {
+pub fn swap(mut a: SwapArgs) -> Result<()> {
+    a.view = a.view.resolved();
     a.view.check()?;
     let (model, threads) = open(&a.model)?;
     let (shape, appearance) =
@@ -173,7 +207,8 @@ pub fn swap(a: SwapArgs) -> Result<()> {
     let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
     let lat = latents(g, &shape, &appearance, trunc.as_ref());
     let rc = a.view.render_config();
-    let renderer = Renderer::new(g, &model.camera, &rc)?;
+    let mut renderer = Renderer::new(g, &model.camera, &rc)?;
+    renderer.field = a.view.field();
     let start = Instant::now();
     let mut frames = Vec::new();
     for (k, &pose) in a.view.poses(model.camera.v_mean).iter().enumerate() {
@@ -198,7 +233,8 @@ pub fn swap(a: SwapArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn matrix(a: MatrixArgs) -> Result<()> {
+pub fn matrix(mut a: MatrixArgs) -> Result<()> {
+    a.view = a.view.resolved();
     a.view.check()?;
     let (model, threads) = open(&a.model)?;
     let g = &model.generator;
@@ -211,7 +247,8 @@ pub fn matrix(a: MatrixArgs) -> Result<()> {
     let k = features.len() as i64;
     let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
     let rc = a.view.render_config();
-    let renderer = Renderer::new(g, &model.camera, &rc)?;
+    let mut renderer = Renderer::new(g, &model.camera, &rc)?;
+    renderer.field = a.view.field();
     let res = a.view.resolution;
     let start = Instant::now();
     let mut blocks = Vec::new();
@@ -327,7 +364,8 @@ pub struct InterpArgs {
     force: bool,
 }
 
-pub fn interp(a: InterpArgs) -> Result<()> {
+pub fn interp(mut a: InterpArgs) -> Result<()> {
+    a.view = a.view.resolved();
     a.view.check()?;
     if !(2..=240).contains(&a.frames) {
         bail!("--frames {}: expected 2 to 240", a.frames);
@@ -343,7 +381,8 @@ pub fn interp(a: InterpArgs) -> Result<()> {
     };
     let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
     let rc = a.view.render_config();
-    let renderer = Renderer::new(g, &model.camera, &rc)?;
+    let mut renderer = Renderer::new(g, &model.camera, &rc)?;
+    renderer.field = a.view.field();
     let pose = a.view.poses(model.camera.v_mean)[0];
     let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
     let noise = a.view.noise(0, a.view.resolution * a.view.resolution, model.device);
@@ -412,7 +451,18 @@ mod tests {
     }
 
     fn view() -> ViewArgs {
-        ViewArgs { resolution: 12, views: 1, pitch: None, yaw: 30.0, steps: 6, psi: 1.0, noise_seed: 3 }
+        ViewArgs {
+            resolution: 12,
+            views: 1,
+            pitch: None,
+            yaw: 30.0,
+            steps: 6,
+            psi: 1.0,
+            noise_seed: 3,
+            preset: None,
+            no_deformation: false,
+            no_correction: false,
+        }
     }
 
     /// Disentanglement is structural: the appearance never reaches density, so "shape A +

@@ -220,11 +220,7 @@ fn synth_cmd(a: SynthArgs) -> Result<()> {
     if a.out.join(synth::METADATA_FILE).exists() && !a.force {
         bail!("{} already holds a dataset (metadata.json); pass --force to replace it", a.out.display());
     }
-    let camera = match a.camera.as_str() {
-        "car" => CameraConfig::car(),
-        "carla" => CameraConfig::carla(),
-        _ => CameraConfig::chair(),
-    };
+    let camera = CameraConfig::preset(&a.camera)?;
     let opts = SynthOptions {
         category: a.category,
         count: a.count,
