@@ -22,6 +22,7 @@ pub mod eval;
 pub mod field;
 pub mod io;
 pub mod loss;
+pub mod mesh;
 pub mod nn;
 pub mod plot;
 pub mod render;

@@ -1,6 +1,7 @@
 //! gdrf-edit: render a GDRF generator from any viewpoint, with shape and appearance
 //! taken from different codes.
 mod bench;
+mod mesh_cmd;
 mod swap;
 
 use anyhow::{bail, Context, Result};
@@ -46,6 +47,10 @@ enum Command {
     /// Interpolate the shape, the appearance or both between two sources at one view:
     /// frame-NNN.png, strip.png and sequence.gif.
     Interp(swap::InterpArgs),
+    /// An isosurface of a source's density as a PLY or OBJ mesh, with the generator's colour
+    /// (optionally another source's appearance: texture transfer) or the template-space
+    /// position as vertex colour (correspondences across shapes).
+    Mesh(mesh_cmd::MeshArgs),
 }
 
 #[derive(Args)]
@@ -184,6 +189,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Matrix(a) => swap::matrix(a),
         Command::Features(a) => swap::features(a),
         Command::Interp(a) => swap::interp(a),
+        Command::Mesh(a) => mesh_cmd::mesh(a),
     }
 }
 

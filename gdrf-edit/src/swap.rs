@@ -173,7 +173,7 @@ pub struct FeaturesArgs {
     out: PathBuf,
 }
 
-fn open(m: &ModelArgs) -> Result<(Model, usize)> {
+pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     let threads = device::init_threads();
     let dev = device::select(&m.device)?;
     let mut model = load_model(m.checkpoint.as_deref(), m.init_seed, dev)?;
@@ -183,7 +183,7 @@ fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     Ok((model, threads))
 }
 
-fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
+pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string())
 }
 
