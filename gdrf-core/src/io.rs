@@ -44,6 +44,30 @@ pub fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
     write_atomic(path, &bytes)
 }
 
+/// Maps `values: (1, H, W)` in [0, 1] (clamped; NaN → 0) through viridis to an image
+/// `(3, H, W)` in [−1, 1], for depth and opacity maps.
+pub fn colormap(values: &Tensor) -> Tensor {
+    // Viridis at 0, ¼, ½, ¾, 1, linearly interpolated.
+    const STOPS: [[f64; 3]; 5] = [
+        [0.267, 0.005, 0.329],
+        [0.229, 0.322, 0.546],
+        [0.128, 0.567, 0.551],
+        [0.369, 0.789, 0.383],
+        [0.993, 0.906, 0.144],
+    ];
+    let v = values.nan_to_num(0.0, 1.0, 0.0).clamp(0.0, 1.0) * 4.0;
+    let idx = v.floor().clamp(0.0, 3.0);
+    let frac = &v - &idx;
+    let stops = Tensor::from_slice(&STOPS.concat()).view([5, 3]).to_kind(values.kind()).to_device(values.device());
+    let i = idx.to_kind(Kind::Int64).view([-1]);
+    let lo = stops.index_select(0, &i);
+    let hi = stops.index_select(0, &(&i + 1));
+    let f = frac.view([-1, 1]);
+    let rgb = &lo + (hi - &lo) * f;
+    let (h, w) = (values.size()[1], values.size()[2]);
+    rgb.transpose(0, 1).reshape([3, h, w]) * 2.0 - 1.0
+}
+
 /// Writes frames as an endlessly looping animated GIF (`delay_ms` per frame), atomically.
 pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Result<()> {
     use image::codecs::gif::{GifEncoder, Repeat};
@@ -65,6 +89,18 @@ pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Resul
 mod tests {
     use super::*;
     use image::AnimationDecoder;
+
+    #[test]
+    fn the_colour_map_runs_from_dark_violet_to_yellow() {
+        let v = Tensor::from_slice(&[0.0f64, 0.5, 1.0, f64::NAN, 7.0]).view([1, 1, 5]);
+        let c = (colormap(&v) + 1.0) * 0.5;
+        let px = |i: i64| Vec::<f64>::try_from(c.select(2, i).view([-1])).unwrap();
+        assert!((px(0)[0] - 0.267).abs() < 1e-9 && (px(0)[2] - 0.329).abs() < 1e-9);
+        assert!((px(1)[1] - 0.567).abs() < 1e-9);
+        assert!((px(2)[0] - 0.993).abs() < 1e-9 && (px(2)[2] - 0.144).abs() < 1e-9);
+        assert_eq!(px(3), px(0));
+        assert_eq!(px(4), px(2));
+    }
 
     #[test]
     fn gifs_hold_every_frame() {

@@ -140,6 +140,10 @@ pub struct SwapArgs {
     /// Write into an output folder that already holds files.
     #[arg(long)]
     force: bool,
+    /// Also write depth-NNN.png (near to far over the camera's ray range) and
+    /// opacity-NNN.png, through the viridis colour map.
+    #[arg(long)]
+    maps: bool,
 }
 
 #[derive(Args)]
@@ -218,6 +222,15 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;
+        if a.maps {
+            let (near, far) = (model.camera.ray_start, model.camera.ray_end);
+            let depth = (img.depth.get(0) - near) / (far - near);
+            io::save_png(&a.out.join(format!("depth-{k:03}.png")), &io::to_rgb8(&io::colormap(&depth), false)?)?;
+            io::save_png(
+                &a.out.join(format!("opacity-{k:03}.png")),
+                &io::to_rgb8(&io::colormap(&img.opacity.get(0)), false)?,
+            )?;
+        }
         frames.push(img.rgb);
     }
     write_sequence(&a.out, &frames)?;
