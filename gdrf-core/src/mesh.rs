@@ -172,6 +172,13 @@ pub fn sample_density<F: crate::field::RadianceField>(
     Ok(out)
 }
 
+/// Correspondence colours: template-space positions `x_t: (…, 3)` (x + Δx) within the
+/// cube `[−half, half]³` mapped to RGB in [0, 1]. A function of the template point alone, so
+/// corresponding points of different shapes get the same colour.
+pub fn template_colour(x_template: &tch::Tensor, half: f64) -> tch::Tensor {
+    ((x_template / half + 1.0) * 0.5).clamp(0.0, 1.0)
+}
+
 impl Mesh {
     /// ASCII PLY with per-vertex colours (8-bit) when there are colours.
     pub fn to_ply(&self) -> String {
@@ -279,6 +286,40 @@ mod tests {
             .sum();
         let want = 4.0 / 3.0 * std::f32::consts::PI * 0.6f32.powi(3);
         assert!((vol - want).abs() < 0.01 * want, "volume {vol} vs {want}");
+    }
+
+    /// Two shapes deform differently; points of each that land on the same template point
+    /// (found by a fixed-point iteration x ← t − Δx(x)) get the same correspondence colour,
+    /// while the same target points of the two shapes do not.
+    #[test]
+    fn corresponding_points_of_two_shapes_share_colours() {
+        use crate::field::generator::{FieldOptions, Generator};
+        use tch::{nn, Device, Kind, Tensor};
+        tch::manual_seed(11);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg =
+            crate::GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let mut g = Generator::new(&vs.root(), &cfg).unwrap();
+        tch::no_grad(|| {
+            let _ = g.deform.head.weight.uniform_(-0.003, 0.003);
+        });
+        let z = Tensor::randn([2, 8], (Kind::Float, Device::Cpu));
+        let lat = tch::no_grad(|| g.latents(&z, &z, None));
+        let (a, b) = (lat.shape.narrow(0, 1), lat.shape.narrow(1, 1));
+        let x_a = Tensor::rand([1, 50, 3], (Kind::Float, Device::Cpu)) - 0.5;
+        let opts = FieldOptions::default();
+        let t = tch::no_grad(|| g.density(&x_a, &a, opts).x_template);
+        let mut x_b = t.copy();
+        for _ in 0..50 {
+            x_b = tch::no_grad(|| &t - g.density(&x_b, &b, opts).dx);
+        }
+        let t_b = tch::no_grad(|| g.density(&x_b, &b, opts).x_template);
+        let dx_gap = f64::try_from((&x_b - &x_a).abs().max()).unwrap();
+        assert!(dx_gap > 1e-3, "the two shapes deform alike ({dx_gap})");
+        let (ca, cb) = (template_colour(&t, 0.8), template_colour(&t_b, 0.8));
+        assert!(f64::try_from((&ca - &cb).abs().max()).unwrap() < 1e-5);
+        let same_target = tch::no_grad(|| template_colour(&g.density(&x_a, &b, opts).x_template, 0.8));
+        assert!(f64::try_from((&ca - same_target).abs().max()).unwrap() > 1e-4);
     }
 
     #[test]

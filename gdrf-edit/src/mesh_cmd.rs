@@ -7,7 +7,7 @@ use clap::Args;
 use gdrf_core::camera::{camera_origins, normalize, Poses};
 use gdrf_core::edit::{latents, Source};
 use gdrf_core::field::generator::FieldOptions;
-use gdrf_core::mesh::{isosurface, sample_density, Grid};
+use gdrf_core::mesh::{isosurface, sample_density, template_colour, Grid};
 use gdrf_core::render::occupancy::camera_half_extent;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -93,7 +93,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         let colours = tch::no_grad(|| {
             let d = g.density(&x, &lat.shape, FieldOptions::default());
             match a.colour {
-                Colour::Template => ((&d.x_template / half + 1.0) * 0.5).clamp(0.0, 1.0),
+                Colour::Template => template_colour(&d.x_template, half),
                 _ => {
                     let pose = Poses::from_angles(&[(model.camera.v_mean, 0.0)], kind, device);
                     let dir = normalize(&-camera_origins(&pose, 1.0)).view([1, 1, 3]).expand_as(&x);
