@@ -37,9 +37,10 @@ pub struct MeshArgs {
     /// Grid samples per axis over the camera's cube.
     #[arg(long, default_value_t = 128)]
     resolution: usize,
-    /// Density softplus(σ) of the surface.
-    #[arg(long, default_value_t = 10.0)]
-    threshold: f32,
+    /// Density softplus(σ) of the surface. Default: 10, or, when the grid's densities do not
+    /// reach 10 (e.g. an untrained model), halfway through their range (printed).
+    #[arg(long)]
+    threshold: Option<f32>,
     /// Vertex colours.
     #[arg(long, value_enum, default_value = "rgb")]
     colour: Colour,
@@ -55,8 +56,10 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     if !(8..=512).contains(&a.resolution) {
         bail!("--resolution {}: expected 8 to 512 samples per axis", a.resolution);
     }
-    if !(a.threshold > 0.0 && a.threshold.is_finite()) {
-        bail!("--threshold {}: expected a positive density", a.threshold);
+    if let Some(t) = a.threshold {
+        if !(t > 0.0 && t.is_finite()) {
+            bail!("--threshold {t}: expected a positive density");
+        }
     }
     let ext = a.out.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     if ext != "ply" && ext != "obj" {
@@ -77,14 +80,24 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let values = sample_density(g, &lat.shape, FieldOptions::default(), half, n, 1 << 15)?;
     let spacing = (2.0 * half / (n - 1) as f64) as f32;
     let grid = Grid { values: &values, dims: [n; 3], origin: [-half as f32; 3], spacing };
-    let mut mesh = isosurface(&grid, a.threshold)?;
+    let (lo, hi) = values
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
+    let threshold = match a.threshold {
+        Some(t) => t,
+        None if lo < 10.0 && hi > 10.0 => 10.0,
+        None => {
+            let t = 0.5 * (lo + hi);
+            eprintln!(
+                "densities span {lo:.3e} to {hi:.3e}, not 10: the surface is at {t:.3e} (set --threshold to choose)"
+            );
+            t
+        }
+    };
+    let mut mesh = isosurface(&grid, threshold)?;
     if mesh.triangles.is_empty() {
-        bail!(
-            "no surface at density {} (the grid's densities span {:.3e} to {:.3e}); pick --threshold inside that range",
-            a.threshold,
-            values.iter().copied().fold(f32::INFINITY, f32::min),
-            values.iter().copied().fold(f32::NEG_INFINITY, f32::max)
-        );
+        bail!("no surface at density {threshold} (the grid's densities span {lo:.3e} to {hi:.3e}); pick --threshold inside that range");
     }
     if a.colour != Colour::None {
         let (kind, device) = g.kind_device();
@@ -109,7 +122,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         "{} vertices, {} triangles at density {} from a {n}³ grid in {:.2} s ({threads} threads) -> {}",
         mesh.vertices.len(),
         mesh.triangles.len(),
-        a.threshold,
+        threshold,
         start.elapsed().as_secs_f64(),
         a.out.display()
     );
