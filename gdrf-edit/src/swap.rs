@@ -10,7 +10,7 @@ use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
-use gdrf_core::{device, io, Latents, RenderConfig};
+use gdrf_core::{device, io, CameraConfig, Latents, PoseDistribution, RenderConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{Kind, Tensor};
@@ -62,6 +62,10 @@ pub struct ViewArgs {
     /// (overrides --steps and --psi).
     #[arg(long, value_parser = ["release"])]
     preset: Option<String>,
+    /// Follow the release's elliptical camera path (pitch and yaw both swing by the camera's
+    /// spread) over --views instead of a turntable.
+    #[arg(long)]
+    ellipse: bool,
     /// Ablations (the paper's template figure): without the deformation Δx and/or the
     /// correction Δσ.
     #[arg(long)]
@@ -102,9 +106,28 @@ impl ViewArgs {
         Ok(())
     }
 
-    /// (pitch, yaw) in radians of each view.
-    fn poses(&self, mean_pitch: f64) -> Vec<(f64, f64)> {
-        let pitch = self.pitch.map(f64::to_radians).unwrap_or(mean_pitch);
+    /// (pitch, yaw) in radians of each view: a turntable at --pitch, or with --ellipse the
+    /// release's path θ = h_mean + h_std·cos a, v = v_mean + v_std·sin a over
+    /// a = linspace(0, 2π, views) (v converted by arccos(1 − 2v/π) for spherical-uniform
+    /// cameras, as the release does).
+    fn poses(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
+        if self.ellipse {
+            let n = self.views.max(2);
+            return (0..self.views)
+                .map(|k| {
+                    let t = std::f64::consts::TAU * k as f64 / (n - 1) as f64;
+                    let v = cam.v_mean + cam.v_std * t.sin();
+                    let pitch = match cam.distribution {
+                        PoseDistribution::SphericalUniform => {
+                            (1.0 - 2.0 * v / std::f64::consts::PI).clamp(-1.0, 1.0).acos()
+                        }
+                        _ => v,
+                    };
+                    (pitch, cam.h_mean + cam.h_std * t.cos())
+                })
+                .collect();
+        }
+        let pitch = self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean);
         (0..self.views).map(|k| (pitch, (self.yaw + 360.0 * k as f64 / self.views as f64).to_radians())).collect()
     }
 
@@ -215,7 +238,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     renderer.field = a.view.field();
     let start = Instant::now();
     let mut frames = Vec::new();
-    for (k, &pose) in a.view.poses(model.camera.v_mean).iter().enumerate() {
+    for (k, &pose) in a.view.poses(&model.camera).iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
         let noise = a.view.noise(k, a.view.resolution * a.view.resolution, model.device);
         let img = renderer.render_image(&lat, &poses, a.view.resolution, &noise)?;
@@ -265,7 +288,7 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     let res = a.view.resolution;
     let start = Instant::now();
     let mut blocks = Vec::new();
-    for (v, &pose) in a.view.poses(model.camera.v_mean).iter().enumerate() {
+    for (v, &pose) in a.view.poses(&model.camera).iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
         let noise = a.view.noise(v, res * res, model.device);
         let cells = if a.no_cache {
@@ -396,7 +419,7 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
-    let pose = a.view.poses(model.camera.v_mean)[0];
+    let pose = a.view.poses(&model.camera)[0];
     let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
     let noise = a.view.noise(0, a.view.resolution * a.view.resolution, model.device);
     let start = Instant::now();
@@ -473,6 +496,7 @@ mod tests {
             psi: 1.0,
             noise_seed: 3,
             preset: None,
+            ellipse: false,
             no_deformation: false,
             no_correction: false,
         }
@@ -488,7 +512,7 @@ mod tests {
         let rc = v.render_config();
         let r = Renderer::new(&g, &cam, &rc).unwrap();
         let (a, b) = (Features::from_seed(&g, 1), Features::from_seed(&g, 2));
-        let poses = Poses::from_angles(&v.poses(cam.v_mean), Kind::Float, Device::Cpu);
+        let poses = Poses::from_angles(&v.poses(&cam), Kind::Float, Device::Cpu);
         let noise = v.noise(0, 144, Device::Cpu);
         let aa = r.render_image(&latents(&g, &a, &a, None), &poses, 12, &noise).unwrap();
         let ab = r.render_image(&latents(&g, &a, &b, None), &poses, 12, &noise).unwrap();
@@ -505,7 +529,7 @@ mod tests {
         let rc = RenderConfig { chunk_points: 200, ..v.render_config() };
         let r = Renderer::new(&g, &cam, &rc).unwrap();
         let features: Vec<Features> = (0..3).map(|s| Features::from_seed(&g, s)).collect();
-        let poses = Poses::from_angles(&v.poses(cam.v_mean), Kind::Float, Device::Cpu);
+        let poses = Poses::from_angles(&v.poses(&cam), Kind::Float, Device::Cpu);
         let noise = v.noise(0, 144, Device::Cpu);
         let t = g.truncation(0.7, 100, 0);
         for trunc in [None, Some(&t)] {
@@ -518,6 +542,21 @@ mod tests {
             // Rows share shape, columns appearance: the cells differ.
             assert!(!full[1].equal(&full[0]) && !full[3].equal(&full[0]));
         }
+    }
+
+    #[test]
+    fn the_ellipse_path_is_the_releases() {
+        let v = ViewArgs { ellipse: true, views: 5, ..view() };
+        let cam = CameraConfig::chair();
+        let p = v.poses(&cam);
+        assert_eq!(p.len(), 5);
+        // a = 0, π/2, π, 3π/2, 2π: yaw h_mean + h_std·cos a, pitch v_mean + v_std·sin a.
+        assert!((p[0].1 - cam.h_std).abs() < 1e-12 && (p[0].0 - cam.v_mean).abs() < 1e-12);
+        assert!((p[1].0 - (cam.v_mean + cam.v_std)).abs() < 1e-12 && p[1].1.abs() < 1e-9);
+        assert!((p[4].1 - p[0].1).abs() < 1e-9);
+        // CARLA's spherical-uniform pitch: arccos(1 − 2v/π) (v_mean 0.7418 → 1.0148 rad).
+        let carla = v.poses(&CameraConfig::carla());
+        assert!((carla[0].0 - 1.0148).abs() < 1e-4, "{}", carla[0].0);
     }
 
     #[test]
