@@ -289,6 +289,10 @@ mod tests {
         wrong.save(&path, &id).unwrap();
         let e = Features::load(&path, &g, &id).unwrap_err().to_string();
         assert!(e.contains("'w_s'") && e.contains("[1, 16]"), "{e}");
+        // An unreadable file (not safetensors) is named.
+        std::fs::write(&path, b"not a feature file").unwrap();
+        let e = Features::load(&path, &g, &id).unwrap_err().to_string();
+        assert!(e.contains("a.safetensors"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -17,9 +17,9 @@ use tch::{Kind, Tensor};
 
 #[derive(Args)]
 pub struct ModelArgs {
-    /// Generator checkpoint (.safetensors). Without it, a randomly initialised generator
-    /// (the release's initialisation, seeded by --init-seed).
-    #[arg(long, value_name = "FILE")]
+    /// Generator checkpoint (.safetensors; --generator is the same). Without it, a randomly
+    /// initialised generator (the release's initialisation, seeded by --init-seed).
+    #[arg(long, visible_alias = "generator", value_name = "FILE")]
     checkpoint: Option<PathBuf>,
     /// Seed of the randomly initialised generator used when no --checkpoint is given.
     #[arg(long, default_value_t = 0)]
