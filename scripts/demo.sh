@@ -6,7 +6,10 @@
 #      with `target/debug/gdrf-train --resume out/demo-run`),
 #   3. samples on a turntable and a shape/appearance swap matrix from the model shipped
 #      in models/chairs-tiny/ (trained with the same config for hours),
-#   4. its evaluation (Fréchet/kernel distances, topology coverage, disentanglement, pose
+#   4. editing with it: a swap matrix with kept shape sides, an orbit GIF of one shape with
+#      another's appearance, an appearance interpolation and a mesh with correspondence
+#      colours,
+#   5. its evaluation (Fréchet/kernel distances, topology coverage, disentanglement, pose
 #      consistency beside the real-data and random-generator ends) with the shipped probe.
 # DEMO_MINUTES sets the length of step 2 (default 3).
 set -euo pipefail
@@ -25,13 +28,20 @@ model=models/chairs-tiny/generator.safetensors
 # Rows: seeds 0–5; columns: 4 views around the object.
 "$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --steps 12 \
   --no-jitter --out out/samples.png
-# Row i keeps the shape of seed i, column j takes the appearance of seed j.
-shapes=() apps=()
-for i in 0 1 2 3; do for j in 0 1 2 3; do shapes+=("$i"); apps+=("$j"); done; done
-"$edit" render --checkpoint "$model" --seeds "$(IFS=,; echo "${shapes[*]}")" \
-  --appearance-seeds "$(IFS=,; echo "${apps[*]}")" --cols 4 --resolution 64 --steps 12 \
-  --no-jitter --yaw 30 --out out/swap.png
+# Row i keeps the shape of seed i, column j takes the appearance of seed j (each row's shape
+# side is computed once and re-shaded).
+"$edit" matrix --checkpoint "$model" --sources seed:0,seed:1,seed:2,seed:3 --resolution 64 --steps 12 \
+  --yaw 30 --out out/swap.png
+# The shape of seed 0 with the appearance of seed 2 on a 24-view orbit (frames, strip, GIF).
+"$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from seed:2 --orbit 24 --resolution 64 \
+  --steps 12 --out out/orbit --force
+# Seed 0's shape while its appearance moves to seed 3's.
+"$edit" interp --checkpoint "$model" --from seed:0 --to seed:3 --what appearance --frames 8 --resolution 64 \
+  --steps 12 --out out/interp --force
+# A mesh of seed 1 coloured by template-space position (correspondences across shapes).
+"$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
 # 200 images keep this to a few minutes; the figures in the README use --num 1000.
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
   --num 200 --out out/eval
-echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png), out/samples.png, out/swap.png and out/eval/ (shipped model)"
+echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png); from the shipped model:"
+echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply and out/eval/"
