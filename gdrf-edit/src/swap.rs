@@ -291,11 +291,15 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     for (v, &pose) in a.view.poses(&model.camera).iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
         let noise = a.view.noise(v, res * res, model.device);
-        let cells = if a.no_cache {
-            swap_matrix_full(&renderer, &features, &poses, res, &noise, trunc.as_ref())?
-        } else {
-            swap_matrix_cached(&renderer, &features, &poses, res, &noise, trunc.as_ref())?
+        let view = MatrixView {
+            renderer: &renderer,
+            features: &features,
+            poses: &poses,
+            res,
+            noise: &noise,
+            trunc: trunc.as_ref(),
         };
+        let cells = if a.no_cache { view.full()? } else { view.cached()? };
         blocks.push(io::grid(&Tensor::cat(&cells, 0), k));
     }
     let secs = start.elapsed().as_secs_f64();
@@ -311,47 +315,46 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     Ok(())
 }
 
-/// Cells `(1, 3, res, res)` in row-major order, each rendered in full.
-pub fn swap_matrix_full(
-    renderer: &Renderer,
-    features: &[Features],
-    poses: &Poses,
-    res: i64,
-    noise: &Noise,
-    trunc: Option<&gdrf_core::field::generator::Truncation>,
-) -> Result<Vec<Tensor>> {
-    let g = renderer.generator;
-    let mut cells = Vec::new();
-    for shape in features {
-        for app in features {
-            cells.push(renderer.render_image(&latents(g, shape, app, trunc), poses, res, noise)?.rgb);
-        }
-    }
-    Ok(cells)
+/// One view of a swap matrix: every (shape, appearance) pair of `features`.
+pub struct MatrixView<'a> {
+    pub renderer: &'a Renderer<'a>,
+    pub features: &'a [Features],
+    pub poses: &'a Poses,
+    pub res: i64,
+    pub noise: &'a Noise,
+    pub trunc: Option<&'a gdrf_core::field::generator::Truncation>,
 }
 
-/// The same cells with each row's shape side computed once and re-shaded per appearance.
-pub fn swap_matrix_cached(
-    renderer: &Renderer,
-    features: &[Features],
-    poses: &Poses,
-    res: i64,
-    noise: &Noise,
-    trunc: Option<&gdrf_core::field::generator::Truncation>,
-) -> Result<Vec<Tensor>> {
-    let g = renderer.generator;
-    let rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
-    let mut cells = Vec::new();
-    for shape in features {
-        let shape_film = latents(g, shape, shape, trunc).shape;
-        let sides = renderer.shape_sides(&shape_film, &rays, noise, renderer.config.shade_min_weight)?;
-        for app in features {
-            let Latents { appearance, .. } = latents(g, shape, app, trunc);
-            let pixel = renderer.shade_chunks(&sides, &appearance)?;
-            cells.push(pixel.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0);
+impl MatrixView<'_> {
+    /// Cells `(1, 3, res, res)` in row-major order, each rendered in full.
+    pub fn full(&self) -> Result<Vec<Tensor>> {
+        let g = self.renderer.generator;
+        let mut cells = Vec::new();
+        for shape in self.features {
+            for app in self.features {
+                let lat = latents(g, shape, app, self.trunc);
+                cells.push(self.renderer.render_image(&lat, self.poses, self.res, self.noise)?.rgb);
+            }
         }
+        Ok(cells)
     }
-    Ok(cells)
+
+    /// The same cells with each row's shape side computed once and re-shaded per appearance.
+    pub fn cached(&self) -> Result<Vec<Tensor>> {
+        let (renderer, g, res) = (self.renderer, self.renderer.generator, self.res);
+        let rays = Rays::from_poses(self.poses, res, renderer.camera.fov_deg);
+        let mut cells = Vec::new();
+        for shape in self.features {
+            let shape_film = latents(g, shape, shape, self.trunc).shape;
+            let sides = renderer.shape_sides(&shape_film, &rays, self.noise, renderer.config.shade_min_weight)?;
+            for app in self.features {
+                let Latents { appearance, .. } = latents(g, shape, app, self.trunc);
+                let pixel = renderer.shade_chunks(&sides, &appearance)?;
+                cells.push(pixel.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0);
+            }
+        }
+        Ok(cells)
+    }
 }
 
 /// strip.png with every frame `(1, 3, H, W)` in a row and, for more than one, an animated
@@ -533,8 +536,8 @@ mod tests {
         let noise = v.noise(0, 144, Device::Cpu);
         let t = g.truncation(0.7, 100, 0);
         for trunc in [None, Some(&t)] {
-            let full = swap_matrix_full(&r, &features, &poses, 12, &noise, trunc).unwrap();
-            let cached = swap_matrix_cached(&r, &features, &poses, 12, &noise, trunc).unwrap();
+            let view = MatrixView { renderer: &r, features: &features, poses: &poses, res: 12, noise: &noise, trunc };
+            let (full, cached) = (view.full().unwrap(), view.cached().unwrap());
             for (i, (f, c)) in full.iter().zip(&cached).enumerate() {
                 let err = f64::try_from((f - c).abs().max()).unwrap();
                 assert!(err <= 1e-5, "cell {i}: {err}");
