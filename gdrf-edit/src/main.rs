@@ -11,7 +11,7 @@ use gdrf_core::checkpoint::{load_generator, Header};
 use gdrf_core::field::generator::{FieldOptions, Generator};
 use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::{GridConfig, Noise, OccupancyGrid, Renderer};
-use gdrf_core::{device, io, CameraConfig, GeneratorConfig, RenderConfig};
+use gdrf_core::{io, CameraConfig, GeneratorConfig, RenderConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -55,13 +55,8 @@ enum Command {
 
 #[derive(Args)]
 struct RenderArgs {
-    /// Generator checkpoint (.safetensors). Without it, a randomly initialised generator
-    /// (the release's initialisation, seeded by --init-seed) is rendered.
-    #[arg(long, value_name = "FILE")]
-    checkpoint: Option<PathBuf>,
-    /// Seed of the randomly initialised generator used when no --checkpoint is given.
-    #[arg(long, default_value_t = 0)]
-    init_seed: i64,
+    #[command(flatten)]
+    model: swap::ModelArgs,
     /// Latent seeds, comma separated: seed s draws z = randn(1, latent) after
     /// manual_seed(s), as the authors' scripts do (same z as PyTorch's CPU generator).
     #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
@@ -123,13 +118,6 @@ struct RenderArgs {
     /// Samples evaluated at once; bounds memory. Small chunks are also faster on CPU.
     #[arg(long, default_value_t = 1 << 14)]
     chunk_points: usize,
-    /// auto, cpu, cuda or cuda:N.
-    #[arg(long, default_value = "auto")]
-    device: String,
-    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
-    /// camera stored with the checkpoint.
-    #[arg(long, value_parser = ["chair", "car", "carla"])]
-    camera: Option<String>,
     /// Output PNG (the grid of images).
     #[arg(long, short, default_value = "render.png")]
     out: PathBuf,
@@ -210,13 +198,7 @@ fn render(a: RenderArgs) -> Result<()> {
     if a.views == 0 {
         bail!("--views: expected at least 1");
     }
-    let threads = device::init_threads();
-    let dev = device::select(&a.device)?;
-    let Model { generator, camera, .. } = load_model(a.checkpoint.as_deref(), a.init_seed, dev)?;
-    let camera = match &a.camera {
-        Some(name) => CameraConfig::preset(name)?,
-        None => camera,
-    };
+    let (Model { generator, camera, device: dev, .. }, threads) = swap::open(&a.model)?;
     let config = RenderConfig {
         num_steps: a.steps,
         jitter: !a.no_jitter,
