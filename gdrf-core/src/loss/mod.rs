@@ -36,6 +36,10 @@ pub struct LossConfig {
     /// The mode-seeking term compares images averaged over blocks of this many pixels
     /// per side (1 = every pixel).
     pub diversity_pool: i64,
+    /// The deformation regularisers' weights ramp linearly from 0 over this many steps
+    /// (0 = full weight from step 0, as in the release), so that shapes can first vary with
+    /// the code before smoothness, rigidity and normal consistency pull them together.
+    pub reg_warmup: i64,
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
@@ -52,6 +56,7 @@ impl Default for LossConfig {
             diversity_weight: 0.0,
             diversity_cap: 0.1,
             diversity_pool: 4,
+            reg_warmup: 0,
             topk_interval: 2000.0,
             topk_floor: 0.6,
             reg: RegConfig::default(),
@@ -74,6 +79,12 @@ impl LossConfig {
             return Err(Error::Config(format!(
                 "loss.diversity_weight is {}, expected 0 (off) or a positive weight",
                 self.diversity_weight
+            )));
+        }
+        if self.reg_warmup < 0 {
+            return Err(Error::Config(format!(
+                "loss.reg_warmup is {}, expected 0 (off) or a number of steps",
+                self.reg_warmup
             )));
         }
         if self.diversity_pool < 1 {
@@ -116,6 +127,15 @@ impl Losses {
 }
 
 impl LossConfig {
+    /// The regularisers' weight factor at `step`: min(1, step / reg_warmup).
+    pub fn reg_scale(&self, step: i64) -> f64 {
+        if self.reg_warmup <= 0 {
+            1.0
+        } else {
+            (step.max(0) as f64 / self.reg_warmup as f64).min(1.0)
+        }
+    }
+
     /// Whether R1 is applied at `step` (lazy R1 applies it every `r1_interval` steps).
     /// The caller makes the real images require grad on those steps.
     pub fn r1_due(&self, step: i64) -> bool {
@@ -187,11 +207,14 @@ pub fn generator_image_terms(
     Ok(l)
 }
 
-/// The weighted deformation regularisers (from [`Generator::regularisers`]) as a breakdown.
+/// The weighted deformation regularisers (from [`Generator::regularisers`]) as a breakdown,
+/// their total scaled by `scale` (the warm-up, [`LossConfig::reg_scale`]); the terms stay
+/// unweighted.
 ///
 /// [`Generator::regularisers`]: crate::Generator::regularisers
-pub fn generator_regularisation(reg: RegTerms, cfg: &RegConfig) -> Losses {
+pub fn generator_regularisation(reg: RegTerms, cfg: &RegConfig, scale: f64) -> Losses {
     let total = reg.weighted_sum(cfg);
+    let total = if scale == 1.0 { total } else { total * scale };
     Losses {
         total,
         terms: vec![
@@ -214,7 +237,8 @@ pub fn generator_loss(
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
-    Ok(generator_image_terms(fake, img, poses, z, at, cfg)?.merge(generator_regularisation(reg, &cfg.reg)))
+    let reg = generator_regularisation(reg, &cfg.reg, cfg.reg_scale(at.step));
+    Ok(generator_image_terms(fake, img, poses, z, at, cfg)?.merge(reg))
 }
 
 /// The discriminator's loss from its verdicts on real images and on (detached) fakes:
@@ -347,5 +371,22 @@ mod tests {
         assert!(e.contains("loss.diversity_weight"), "{e}");
         assert!(LossConfig { diversity_cap: 0.0, ..Default::default() }.validate().is_err());
         assert!(LossConfig { diversity_pool: 0, ..Default::default() }.validate().is_err());
+        // The regularisers' warm-up: none at step 0, half way at 50, full from 100 on.
+        let warm = LossConfig { reg_warmup: 100, ..Default::default() };
+        assert_eq!(
+            (warm.reg_scale(0), warm.reg_scale(50), warm.reg_scale(100), warm.reg_scale(400)),
+            (0.0, 0.5, 1.0, 1.0)
+        );
+        assert_eq!(LossConfig::default().reg_scale(0), 1.0);
+        let c = |v: f64| Tensor::from(v);
+        let terms = || RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
+        let at = |step| Schedule { step, alpha: 1.0 };
+        let early = generator_loss(&d, &img, &poses, None, terms(), at(25), &warm).unwrap();
+        let late = generator_loss(&d, &img, &poses, None, terms(), at(200), &warm).unwrap();
+        let reg_full = 0.01 * 2.0 + 3.0 + 0.1 * 4.0 + 5.0 * 0.5;
+        let gap = late.total.double_value(&[]) - early.total.double_value(&[]);
+        assert!((gap - 0.75 * reg_full).abs() < 1e-12, "{gap}");
+        assert_eq!(early.get("reg_smoothness").unwrap().double_value(&[]), 3.0);
+        assert!(LossConfig { reg_warmup: -1, ..Default::default() }.validate().is_err());
     }
 }

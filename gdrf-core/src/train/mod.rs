@@ -565,7 +565,11 @@ impl Trainer {
         }
         let lat = gen.latents(z, z, None);
         let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
-        let reg = generator_regularisation(gen.regularisers(&lat.shape, &samples, cfg.reg.variant), &cfg.reg);
+        let reg = generator_regularisation(
+            gen.regularisers(&lat.shape, &samples, cfg.reg.variant),
+            &cfg.reg,
+            cfg.reg_scale(at.step),
+        );
         (&reg.total / split).backward();
         Ok(adv.merge(reg))
     }
