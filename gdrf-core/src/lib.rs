@@ -20,6 +20,7 @@ pub mod edit;
 pub mod error;
 pub mod eval;
 pub mod field;
+pub mod invert;
 pub mod io;
 pub mod loss;
 pub mod mesh;

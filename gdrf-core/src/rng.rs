@@ -36,6 +36,8 @@ pub enum Purpose {
     ProbeInit = 18,
     /// gdrf-edit's jitter and importance uniforms, shared by every image of a view.
     EditNoise = 19,
+    /// gdrf-invert: renderer noise and ray subsets of each optimisation step.
+    InvertNoise = 20,
 }
 
 /// A source of uniform and normal tensors.

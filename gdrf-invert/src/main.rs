@@ -1,13 +1,321 @@
-//! gdrf-invert: not implemented yet; prints its help.
+//! gdrf-invert: a photo into shape and appearance features (paper §5), written as the
+//! feature file gdrf-edit reads.
+use anyhow::{bail, Context, Result};
 use clap::Parser;
+use gdrf_core::camera::Poses;
+use gdrf_core::checkpoint::load_generator;
+use gdrf_core::device;
+use gdrf_core::edit::{generator_id, latents};
+use gdrf_core::eval::effnet::EfficientNetLite0;
+use gdrf_core::eval::lpips::{Lpips, LpipsNet};
+use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
+use gdrf_core::invert::photo::{load_photo, Fit};
+use gdrf_core::invert::{invert, InvertConfig, Perceptual, Start, StepLog};
+use gdrf_core::io::{save_gif, save_png, to_rgb8};
+use gdrf_core::plot::{draw_panels, Panel, Series};
+use gdrf_core::render::{Noise, Renderer};
+use gdrf_core::RenderConfig;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use tch::{Kind, Tensor};
 
-/// Invert a photo into shape and appearance features (coming with the inversion issue).
+/// Invert a photo into GDRF shape and appearance features.
+///
+/// Renders the generator at the photo's pose and optimises the shape feature w_s and the
+/// appearance modulation (γ_a, β_a) with Adam on MSE + a perceptual distance + priors that
+/// keep them near their start (paper §5). Writes into --out: features.safetensors (for
+/// `gdrf-edit --shape-from/--appearance-from`), input.png (the photo as compared),
+/// reconstruction.png, compare.png (photo | start | result), an orbit of novel views
+/// (orbit/frame-NNN.png and orbit.gif), loss.png and invert.json (settings, timings and
+/// the loss of every step).
 #[derive(Parser)]
-#[command(version, about, long_about = None)]
-struct Args {}
+#[command(version, about, long_about)]
+struct Cli {
+    /// The photo: PNG or JPEG, any size (non-square ones are centre-cropped, or padded
+    /// with --fit pad), RGBA composited on white.
+    photo: PathBuf,
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-tiny.
+    #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
+    generator: Option<PathBuf>,
+    /// Camera pose of the photo as PITCH,YAW in degrees (pitch from the +y axis, as
+    /// gdrf-edit's --pitch/--yaw). Default: the camera's mean pose.
+    #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
+    pose: Option<String>,
+    /// A mask image of the photo's size: black pixels become background (white).
+    #[arg(long, value_name = "FILE")]
+    mask: Option<PathBuf>,
+    /// How a non-square photo becomes square: crop (centre square) or pad (white borders).
+    #[arg(long, default_value = "crop")]
+    fit: Fit,
+    /// Optimisation steps at most (the paper: 2 000).
+    #[arg(long, default_value_t = InvertConfig::default().steps)]
+    steps: usize,
+    /// Adam's learning rate.
+    #[arg(long, default_value_t = InvertConfig::default().lr)]
+    lr: f64,
+    /// Side of the renders compared with the photo.
+    #[arg(long, default_value_t = InvertConfig::default().resolution)]
+    resolution: i64,
+    /// Coarse samples per ray during the optimisation (the importance pass adds as many).
+    #[arg(long, default_value_t = InvertConfig::default().num_steps)]
+    samples: usize,
+    /// Perceptual term: effnet (EfficientNet-Lite0 distance, offline default), lpips-vgg or
+    /// lpips-alex (real LPIPS; needs --lpips-backbone), or none.
+    #[arg(long, default_value = "effnet", value_parser = ["effnet", "lpips-vgg", "lpips-alex", "none"])]
+    perceptual: String,
+    /// The LPIPS backbone file (scripts/export_lpips_backbone.py writes it).
+    #[arg(long, value_name = "FILE")]
+    lpips_backbone: Option<PathBuf>,
+    /// Weights of the loss terms.
+    #[arg(long, default_value_t = InvertConfig::default().mse_weight)]
+    mse_weight: f64,
+    #[arg(long, default_value_t = InvertConfig::default().perceptual_weight)]
+    perceptual_weight: f64,
+    #[arg(long, default_value_t = InvertConfig::default().prior_shape)]
+    prior_shape: f64,
+    #[arg(long, default_value_t = InvertConfig::default().prior_appearance)]
+    prior_appearance: f64,
+    /// Fraction of the rays whose gradients are taken each step (1 = all).
+    #[arg(long, default_value_t = InvertConfig::default().ray_fraction)]
+    ray_fraction: f64,
+    /// Fraction of the steps, from the start, compared at half resolution.
+    #[arg(long, default_value_t = InvertConfig::default().coarse_fraction)]
+    coarse_fraction: f64,
+    /// Stop after this many steps without a relative improvement of 1e-3 (0 = never).
+    #[arg(long, default_value_t = InvertConfig::default().patience)]
+    patience: usize,
+    /// Views of the novel-view orbit (turntable at the photo's pitch); 0 = none.
+    #[arg(long, default_value_t = 24)]
+    orbit: usize,
+    /// Side of the orbit's and the reconstruction's renders (default: --resolution).
+    #[arg(long)]
+    render_resolution: Option<i64>,
+    /// Seed of the renderer noise and ray subsets.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// Output folder.
+    #[arg(long, short, default_value = "inversion")]
+    out: PathBuf,
+    /// Write into a folder that already holds files.
+    #[arg(long)]
+    force: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
 
 fn main() {
-    let _ = Args::parse();
-    eprintln!("gdrf-invert is not implemented yet; see --help.");
-    std::process::exit(2);
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn default_generator() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/chairs-tiny/generator.safetensors")
+}
+
+/// `PITCH,YAW` in degrees → radians.
+fn parse_pose(s: &str) -> Result<(f64, f64)> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let nums: Vec<f64> = parts.iter().filter_map(|p| p.parse().ok()).collect();
+    if parts.len() != 2 || nums.len() != 2 || nums.iter().any(|v| !v.is_finite()) {
+        bail!("--pose '{s}': expected PITCH,YAW in degrees, e.g. --pose 60,-30");
+    }
+    Ok((nums[0].to_radians(), nums[1].to_radians()))
+}
+
+fn run(a: Cli) -> Result<()> {
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    let cfg = InvertConfig {
+        steps: a.steps,
+        lr: a.lr,
+        resolution: a.resolution,
+        num_steps: a.samples,
+        mse_weight: a.mse_weight,
+        perceptual_weight: if a.perceptual == "none" { 0.0 } else { a.perceptual_weight },
+        prior_shape: a.prior_shape,
+        prior_appearance: a.prior_appearance,
+        ray_fraction: a.ray_fraction,
+        coarse_fraction: a.coarse_fraction,
+        patience: a.patience,
+        seed: a.seed,
+        ..Default::default()
+    };
+    cfg.validate()?;
+    let view_res = a.render_resolution.unwrap_or(a.resolution);
+    if !(4..=1024).contains(&view_res) {
+        bail!("--render-resolution {view_res}: expected 4 to 1024");
+    }
+    let pose = a.pose.as_deref().map(parse_pose).transpose()?;
+    let gen_path = a.generator.clone().unwrap_or_else(default_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
+    let id = generator_id(&m.vs, g);
+    // Read the photo before anything is written, so a bad one leaves no folder behind.
+    let photo = load_photo(&a.photo, a.mask.as_deref(), a.fit, a.resolution, dev)?;
+    output_dir(&a.out, a.force)?;
+
+    let pose = pose.unwrap_or_else(|| {
+        eprintln!(
+            "no --pose: using the camera's mean pose (pitch {:.1}°, yaw {:.1}°)",
+            cam.v_mean.to_degrees(),
+            cam.h_mean.to_degrees()
+        );
+        (cam.v_mean, cam.h_mean)
+    });
+    let effnet;
+    let lpips;
+    let perc = match a.perceptual.as_str() {
+        "none" => None,
+        "effnet" => {
+            let path = EfficientNetLite0::default_path();
+            effnet = EfficientNetLite0::load(&path, dev).with_context(|| {
+                format!("the effnet perceptual term needs {} (run scripts/setup.sh)", path.display())
+            })?;
+            let d = EffnetPerceptual { net: &effnet, size: 224 };
+            Some(Perceptual { name: perceptual::NAME.to_string(), distance: Box::new(move |x, y| d.distance(x, y)) })
+        }
+        name => {
+            let net = if name == "lpips-vgg" { LpipsNet::Vgg16 } else { LpipsNet::Alex };
+            let Some(backbone) = &a.lpips_backbone else {
+                bail!("--perceptual {name} needs --lpips-backbone FILE (scripts/export_lpips_backbone.py writes it)");
+            };
+            let heads = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(format!("../weights/lpips-{}-heads.safetensors", net.name()));
+            lpips = Lpips::load(net, backbone, &heads, dev)?;
+            Some(Perceptual {
+                name: format!("LPIPS ({})", net.name()),
+                distance: Box::new(|x, y| lpips.distance(x, y)),
+            })
+        }
+    };
+    let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
+    eprintln!(
+        "inverting {} at {}² with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        a.photo.display(),
+        a.resolution,
+        a.samples,
+        a.samples,
+        a.steps
+    );
+    let start = Start::mean(g, pose, 10_000);
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
+            .expect("valid template"),
+    );
+    let inv = invert(g, &cam, &photo, &start, &cfg, perc.as_ref(), &mut |l: &StepLog| {
+        bar.set_position(l.step as u64 + 1);
+        bar.set_message(format!("loss {:.4} (mse {:.4}, perceptual {:.4})", l.loss, l.mse, l.perceptual));
+    })?;
+    bar.finish_and_clear();
+    let seconds = inv.history.last().map(|l| l.seconds).unwrap_or(0.0);
+
+    // Outputs.
+    inv.features.save(&a.out.join("features.safetensors"), &id)?;
+    let rc = RenderConfig { num_steps: a.samples.max(12), jitter: false, ..Default::default() };
+    let r = Renderer::new(g, &cam, &rc)?;
+    let view = |f: &gdrf_core::edit::Features, poses: &[(f64, f64)]| -> Result<Tensor> {
+        let lat = latents(g, f, f, None);
+        let lat = gdrf_core::Latents {
+            shape: gdrf_core::nn::film::Film {
+                gamma: lat.shape.gamma.repeat([poses.len() as i64, 1]),
+                beta: lat.shape.beta.repeat([poses.len() as i64, 1]),
+            },
+            appearance: gdrf_core::nn::film::Film {
+                gamma: lat.appearance.gamma.repeat([poses.len() as i64, 1]),
+                beta: lat.appearance.beta.repeat([poses.len() as i64, 1]),
+            },
+        };
+        let p = Poses::from_angles(poses, Kind::Float, dev);
+        Ok(tch::no_grad(|| r.render_image(&lat, &p, view_res, &Noise::default()))?.rgb)
+    };
+    let recon = view(&inv.features, &[pose])?;
+    let start_features = gdrf_core::edit::Features {
+        w_s: start.w_s.shallow_clone(),
+        appearance: gdrf_core::nn::film::Film::from_raw(&start.appearance_raw),
+        pose: Some(pose),
+        z: None,
+    };
+    let start_img = view(&start_features, &[pose])?;
+    let input = gdrf_core::invert::resize(&photo, view_res);
+    save_png(&a.out.join("input.png"), &to_rgb8(&input.get(0), false)?)?;
+    save_png(&a.out.join("reconstruction.png"), &to_rgb8(&recon.get(0), false)?)?;
+    let compare = Tensor::cat(&[input.get(0), start_img.get(0), recon.get(0)], 2);
+    save_png(&a.out.join("compare.png"), &to_rgb8(&compare, false)?)?;
+    let recon_mse = f64::try_from((&recon - &input).square().mean(Kind::Float))?;
+    let psnr = 10.0 * (4.0 / recon_mse.max(1e-12)).log10();
+    if a.orbit > 0 {
+        let poses: Vec<(f64, f64)> =
+            (0..a.orbit).map(|k| (pose.0, pose.1 + std::f64::consts::TAU * k as f64 / a.orbit as f64)).collect();
+        let dir = a.out.join("orbit");
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let mut frames = Vec::with_capacity(poses.len());
+        for chunk in poses.chunks(8) {
+            let imgs = view(&inv.features, chunk)?;
+            for i in 0..chunk.len() as i64 {
+                let f = to_rgb8(&imgs.get(i), false)?;
+                save_png(&dir.join(format!("frame-{:03}.png", frames.len())), &f)?;
+                frames.push(f);
+            }
+        }
+        save_gif(&a.out.join("orbit.gif"), &frames, 80)?;
+    }
+    let series = |name: &str, f: &dyn Fn(&StepLog) -> f64| Series {
+        name: name.to_string(),
+        points: inv.history.iter().map(|l| (l.step as f64, f(l))).collect(),
+    };
+    let panels = [
+        Panel { title: "loss".into(), series: vec![series("total", &|l| l.loss)], log_y: true },
+        Panel {
+            title: "terms".into(),
+            series: vec![
+                series("mse", &|l| l.mse),
+                series("perceptual", &|l| l.perceptual),
+                series("prior", &|l| l.prior),
+            ],
+            log_y: true,
+        },
+    ];
+    save_png(&a.out.join("loss.png"), &draw_panels(&panels, 2, 360, 240))?;
+    let report = serde_json::json!({
+        "photo": a.photo.display().to_string(),
+        "generator": gen_path.display().to_string(),
+        "generator_id": id,
+        "pose_deg": [pose.0.to_degrees(), pose.1.to_degrees()],
+        "perceptual": perc_name,
+        "config": cfg,
+        "steps_run": inv.history.len(),
+        "stopped_early": inv.stopped_early,
+        "seconds": seconds,
+        "reconstruction_psnr_db": psnr,
+        "device": format!("{dev:?}"),
+        "threads": threads,
+        "history": inv.history,
+    });
+    gdrf_core::checkpoint::write_atomic(&a.out.join("invert.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "{} steps in {seconds:.1} s{}; reconstruction PSNR {psnr:.2} dB at {view_res}²; wrote {}/features.safetensors, reconstruction.png, compare.png{}, loss.png, invert.json",
+        inv.history.len(),
+        if inv.stopped_early { " (stopped early)" } else { "" },
+        a.out.display(),
+        if a.orbit > 0 { ", orbit.gif" } else { "" }
+    );
+    Ok(())
+}
+
+/// A folder to write into: created when missing; one that holds files is refused unless
+/// `force`.
+fn output_dir(dir: &Path, force: bool) -> Result<()> {
+    if dir.is_dir() && std::fs::read_dir(dir)?.next().is_some() && !force {
+        bail!("--out {}: the folder already holds files; pass --force to write into it", dir.display());
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
+    Ok(())
 }

@@ -248,6 +248,20 @@ impl EfficientNetLite0 {
         Features { taps, pooled }
     }
 
+    /// The taps `0..=last` of [`TAP_BLOCKS`] on prepared images, stopping after the block
+    /// of tap `last` (the projected discriminator needs no head).
+    pub fn taps(&self, x: &Tensor, last: usize) -> Vec<Tensor> {
+        let mut h = self.stem.forward(x);
+        let mut taps = Vec::with_capacity(last + 1);
+        for (i, b) in self.blocks.iter().enumerate().take(TAP_BLOCKS[last] + 1) {
+            h = b.forward(&h);
+            if TAP_BLOCKS.contains(&i) {
+                taps.push(h.shallow_clone());
+            }
+        }
+        taps
+    }
+
     /// ImageNet logits `(B, 1000)` from [`Features::pooled`].
     pub fn logits(&self, pooled: &Tensor) -> Tensor {
         pooled.linear(&self.fc_weight, Some(&self.fc_bias))

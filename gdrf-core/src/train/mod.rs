@@ -19,7 +19,7 @@ pub use pass::{discriminator_pass, generator_pass, FakeBatch};
 use crate::camera::Poses;
 use crate::checkpoint::{self, Header};
 use crate::data::{self, Dataset};
-use crate::disc::Discriminator;
+use crate::disc::Judge;
 use crate::loss::deform_reg::{reg_ray_count, select_samples};
 use crate::loss::{generator_image_terms, generator_regularisation, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
@@ -155,7 +155,7 @@ pub struct Trainer {
     pub evs: nn::VarStore,
     pub ema_generator: Generator,
     pub dvs: nn::VarStore,
-    pub disc: Discriminator,
+    pub disc: Box<dyn Judge>,
     pub adam_g: Adam,
     pub adam_d: Adam,
     pub ema: Ema,
@@ -179,7 +179,7 @@ impl Trainer {
         let gvs = nn::VarStore::new(device);
         let generator = Generator::new(&gvs.root(), &cfg.generator)?;
         let dvs = nn::VarStore::new(device);
-        let disc = Discriminator::with_config(&dvs.root(), &cfg.discriminator)?;
+        let disc = crate::disc::build(&dvs.root(), &cfg.discriminator)?;
         let evs = nn::VarStore::new(device);
         let ema_generator = Generator::new(&evs.root(), &cfg.generator)?;
         copy_vars(&evs, &gvs);
@@ -435,7 +435,7 @@ impl Trainer {
             regions: stage.regions,
             noise: &noise,
         };
-        let losses = discriminator_pass(&renderer, &self.disc, real, real_poses, &fake, at, &self.cfg.loss)?;
+        let losses = discriminator_pass(&renderer, self.disc.as_ref(), real, real_poses, &fake, at, &self.cfg.loss)?;
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
         losses.total.backward();
@@ -535,7 +535,7 @@ impl Trainer {
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None);
             let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
-            let mut losses = generator_pass(&renderer, &self.disc, &fake, Some(reg_rays), at, cfg)?;
+            let mut losses = generator_pass(&renderer, self.disc.as_ref(), &fake, Some(reg_rays), at, cfg)?;
             losses.total = losses.total.g_mul_scalar(fault);
             (&losses.total / split).backward();
             return Ok(losses);
@@ -548,7 +548,7 @@ impl Trainer {
             renderer.render_regions(&lat, poses, res, stage.regions, noise)
         })?;
         let img = img.detach().set_requires_grad(true);
-        let d = self.disc.forward(&img, at.alpha)?;
+        let d = self.disc.judge(&img, at.alpha)?;
         let mut adv = generator_image_terms(&d, &img, &target, Some(z), at, cfg)?;
         adv.total = adv.total.g_mul_scalar(fault);
         let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
@@ -828,7 +828,7 @@ impl Trainer {
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).
     pub fn parameter_counts(&self, res: i64) -> (i64, i64, i64) {
         let count = |vs: &nn::VarStore| vs.variables().values().map(|t| t.numel() as i64).sum::<i64>();
-        let used = crate::disc::used_parameters(&self.disc, res).unwrap_or(0);
+        let used = self.disc.used_parameters(res).unwrap_or(0);
         (count(&self.gvs), count(&self.dvs), used)
     }
 }

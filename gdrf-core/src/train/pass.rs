@@ -1,7 +1,7 @@
 //! One forward pass of each player: render, judge, and hand the judgement to the losses
 //! (which never render themselves).
 use crate::camera::Poses;
-use crate::disc::Discriminator;
+use crate::disc::Judge;
 use crate::loss::deform_reg::select_samples;
 use crate::loss::{discriminator_loss, generator_loss, LossConfig, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
@@ -27,14 +27,14 @@ pub struct FakeBatch<'a> {
 /// parameters must not receive gradients.
 pub fn generator_pass(
     renderer: &Renderer,
-    disc: &Discriminator,
+    disc: &dyn Judge,
     fake: &FakeBatch,
     reg_rays: Option<&Tensor>,
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
-    let d = disc.forward(&img, at.alpha)?;
+    let d = disc.judge(&img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, reg_rays);
     let reg = renderer.generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
     generator_loss(&d, &img, &fake.poses.stacked(), fake.z, reg, at, cfg)
@@ -44,7 +44,7 @@ pub fn generator_pass(
 /// require grad when R1 is due, unless they already do) and on the fakes.
 pub fn discriminator_pass(
     renderer: &Renderer,
-    disc: &Discriminator,
+    disc: &dyn Judge,
     real: &Tensor,
     real_poses: Option<&Tensor>,
     fake: &FakeBatch,
@@ -56,7 +56,7 @@ pub fn discriminator_pass(
             .0;
     let real =
         if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(cfg.r1_due(at.step)) };
-    let dr = disc.forward(&real, at.alpha)?;
-    let df = disc.forward(&fakes, at.alpha)?;
+    let dr = disc.judge(&real, at.alpha)?;
+    let df = disc.judge(&fakes, at.alpha)?;
     discriminator_loss(&dr, &real, real_poses, &df, &fake.poses.stacked(), fake.z, at, cfg)
 }

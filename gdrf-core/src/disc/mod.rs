@@ -1,9 +1,15 @@
-//! The discriminator: pi-GAN's progressive CoordConv residual encoder with anti-aliased
-//! fade-in, heads for the real/fake logit, a latent prediction and the pose (pitch, yaw).
+//! The discriminators. The release's ([`Discriminator`]): pi-GAN's progressive CoordConv
+//! residual encoder with anti-aliased fade-in, heads for the real/fake logit, a latent
+//! prediction and the pose (pitch, yaw). An option for small budgets
+//! ([`projected::ProjectedDiscriminator`]): learned heads on a frozen pretrained network's
+//! features, with the same outputs. The training loop sees either through [`Judge`].
+pub mod projected;
+
 use crate::nn::mapping::leaky_relu;
 use crate::{Error, Result};
+use projected::{ProjectedConfig, ProjectedDiscriminator};
 use serde::{Deserialize, Serialize};
-use tch::{nn, Tensor};
+use tch::{nn, Device, Tensor};
 
 /// Channels of fromRGB[i] (the input of layers[i]) in the release.
 pub const CHANNELS: [i64; 9] = [16, 32, 64, 128, 256, 400, 400, 400, 400];
@@ -23,16 +29,56 @@ pub struct DiscConfig {
     /// (StyleGAN's remedy for mode collapse: D sees how much a group of images varies);
     /// 0 = off, as in the release. Groups shrink to divide the batch.
     pub minibatch_std_group: i64,
+    /// Which discriminator: `"release"` (default) or `"projected"`.
+    pub kind: DiscKind,
+    /// Settings of the projected discriminator (read when `kind = "projected"`).
+    pub projected: ProjectedConfig,
+}
+
+/// Which discriminator a run trains.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DiscKind {
+    /// The release's progressive CoordConv encoder, trained from scratch.
+    #[default]
+    Release,
+    /// Heads on frozen EfficientNet-Lite0 features ([`projected`]).
+    Projected,
 }
 
 impl Default for DiscConfig {
     fn default() -> Self {
-        Self { channels: CHANNELS.to_vec(), minibatch_std_group: 0 }
+        Self {
+            channels: CHANNELS.to_vec(),
+            minibatch_std_group: 0,
+            kind: DiscKind::Release,
+            projected: ProjectedConfig::default(),
+        }
     }
+}
+
+/// What the training loop needs of a discriminator.
+pub trait Judge {
+    /// `img: (B, 3, S, S)` in [−1, 1] → logit `(B, 1)`, latent `(B, 256)`, pose `(B, 2)`;
+    /// `alpha` is the fade-in of a resolution switch (1 = none).
+    fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput>;
+    /// Trained parameters a `size × size` input uses.
+    fn used_parameters(&self, size: i64) -> Result<i64>;
+    fn device(&self) -> Device;
+}
+
+/// The configured discriminator, its variables under `vs`.
+pub fn build(vs: &nn::Path, cfg: &DiscConfig) -> Result<Box<dyn Judge>> {
+    cfg.validate()?;
+    Ok(match cfg.kind {
+        DiscKind::Release => Box::new(Discriminator::with_config(vs, cfg)?),
+        DiscKind::Projected => Box::new(ProjectedDiscriminator::new(vs, &cfg.projected)?),
+    })
 }
 
 impl DiscConfig {
     pub fn validate(&self) -> Result<()> {
+        self.projected.validate()?;
         if self.channels.len() != CHANNELS.len() || self.channels.iter().any(|&c| c < 1) {
             return Err(Error::Config(format!(
                 "discriminator.channels is {:?}, expected {} positive widths (one per resolution 512² … 2²)",
@@ -155,6 +201,18 @@ pub struct Discriminator {
     minibatch_std_group: i64,
 }
 
+impl Judge for Discriminator {
+    fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
+        self.forward(img, alpha)
+    }
+    fn used_parameters(&self, size: i64) -> Result<i64> {
+        used_parameters(self, size)
+    }
+    fn device(&self) -> Device {
+        self.head.weight.device()
+    }
+}
+
 impl Discriminator {
     /// The release's discriminator.
     pub fn new(vs: &nn::Path) -> Self {
@@ -264,7 +322,7 @@ mod tests {
     #[test]
     fn narrow_widths_work_and_bad_ones_are_named() {
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], minibatch_std_group: 0 };
+        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], ..Default::default() };
         let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
         let o = d.forward(&Tensor::rand([3, 3, 32, 32], (Kind::Float, Device::Cpu)), 0.3).unwrap();
         assert_eq!(o.pose.size(), [3, 2]);
@@ -300,7 +358,11 @@ mod tests {
         minibatch_std(&z, 4).sum(Kind::Double).backward();
         assert!(bool::try_from(z.grad().isfinite().all()).unwrap());
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = DiscConfig { channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64], minibatch_std_group: 4 };
+        let cfg = DiscConfig {
+            channels: vec![8, 16, 16, 32, 32, 64, 64, 64, 64],
+            minibatch_std_group: 4,
+            ..Default::default()
+        };
         let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
         assert_eq!(d.head.weight.size()[1], 65);
         assert_eq!(

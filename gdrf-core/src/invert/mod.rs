@@ -1,0 +1,379 @@
+//! Photo inversion (paper §5): the shape feature w_s and the appearance modulation
+//! (γ_a, β_a) that re-render a photo at its pose, found by Adam on
+//!
+//! ```text
+//! mse_weight · MSE(I, Î) + perceptual_weight · P(I, Î)
+//!   + prior_shape · mean (w_s − w_s⁰)² + prior_appearance · mean (a − a⁰)²
+//! ```
+//!
+//! where `a` is the appearance mapping network's raw output (f, β), with γ = 15 f + 30 (so
+//! Adam's step size means the same for γ and β, as the raw output is what the mapping
+//! network produces), and `P` the perceptual distance the caller supplies (real LPIPS, or
+//! the EfficientNet-Lite0 distance offline). The paper sums squares in its priors; means keep
+//! the weights independent of the network widths.
+//!
+//! The speed options, each measured by `gdrf-invert bench`:
+//! - `ray_fraction < 1`: each step renders the whole image without gradients, re-renders a
+//!   random subset of its rays with gradients at the same sample depths and splices them in,
+//!   so both terms see the full image but the backward pass only the subset;
+//! - `coarse_fraction > 0`: the first steps compare at half resolution;
+//! - `patience > 0`: stop once the loss has not improved by `min_improvement` (relative)
+//!   for that many steps.
+pub mod photo;
+
+use crate::camera::{Poses, Rays};
+use crate::config::{CameraConfig, RenderConfig};
+use crate::edit::Features;
+use crate::field::generator::Generator;
+use crate::nn::film::Film;
+use crate::render::{Noise, Renderer};
+use crate::rng::{Purpose, RandomSource, StepRng};
+use crate::{Error, Latents, Result};
+use serde::{Deserialize, Serialize};
+use tch::{Kind, Tensor};
+
+/// Settings of the optimisation (stage 2).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InvertConfig {
+    /// Adam steps at most (the paper: 2 000).
+    pub steps: usize,
+    /// Adam's learning rate (betas 0.9, 0.999).
+    pub lr: f64,
+    /// Side of the renders compared with the photo.
+    pub resolution: i64,
+    /// Samples per ray, coarse (the importance pass adds as many).
+    pub num_steps: usize,
+    pub mse_weight: f64,
+    pub perceptual_weight: f64,
+    /// Weight of mean (w_s − w_s⁰)².
+    pub prior_shape: f64,
+    /// Weight of mean (a − a⁰)² over the raw appearance (f, β).
+    pub prior_appearance: f64,
+    /// Fraction of rays whose gradients are taken each step (1 = all).
+    pub ray_fraction: f64,
+    /// Fraction of the steps, from the start, compared at half resolution.
+    pub coarse_fraction: f64,
+    /// Early stop after this many steps without improvement (0 = never).
+    pub patience: usize,
+    /// Relative improvement of the best loss that counts for `patience`.
+    pub min_improvement: f64,
+    /// Seed of the renderer noise and the ray subsets.
+    pub seed: u64,
+}
+
+impl Default for InvertConfig {
+    fn default() -> Self {
+        Self {
+            steps: 300,
+            lr: 0.01,
+            resolution: 64,
+            num_steps: 24,
+            mse_weight: 1.0,
+            perceptual_weight: 1.0,
+            prior_shape: 0.01,
+            prior_appearance: 0.01,
+            ray_fraction: 1.0,
+            coarse_fraction: 0.0,
+            patience: 0,
+            min_improvement: 1e-3,
+            seed: 0,
+        }
+    }
+}
+
+impl InvertConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad =
+            |key: &str, v: String, want: &str| Err(Error::Config(format!("invert.{key} is {v}, expected {want}")));
+        if self.lr <= 0.0 || !self.lr.is_finite() {
+            return bad("lr", self.lr.to_string(), "a positive number");
+        }
+        if !(4..=1024).contains(&self.resolution) {
+            return bad("resolution", self.resolution.to_string(), "4 to 1024");
+        }
+        if self.num_steps < 3 {
+            return bad("num_steps", self.num_steps.to_string(), "at least 3");
+        }
+        for (k, v) in [
+            ("mse_weight", self.mse_weight),
+            ("perceptual_weight", self.perceptual_weight),
+            ("prior_shape", self.prior_shape),
+            ("prior_appearance", self.prior_appearance),
+        ] {
+            if v < 0.0 || !v.is_finite() {
+                return bad(k, v.to_string(), "a weight ≥ 0");
+            }
+        }
+        if !(self.ray_fraction > 0.0 && self.ray_fraction <= 1.0) {
+            return bad("ray_fraction", self.ray_fraction.to_string(), "in (0, 1]");
+        }
+        if !(0.0..1.0).contains(&self.coarse_fraction) {
+            return bad("coarse_fraction", self.coarse_fraction.to_string(), "in [0, 1)");
+        }
+        if self.min_improvement.is_nan() || self.min_improvement < 0.0 {
+            return bad("min_improvement", self.min_improvement.to_string(), "≥ 0");
+        }
+        Ok(())
+    }
+
+    /// Side of the renders at `step`.
+    pub fn resolution_at(&self, step: usize) -> i64 {
+        if (step as f64) < self.coarse_fraction * self.steps as f64 {
+            (self.resolution / 2).max(4)
+        } else {
+            self.resolution
+        }
+    }
+}
+
+/// `(B,)` distances between two `(B, 3, H, W)` batches in [−1, 1].
+pub type Distance<'a> = Box<dyn Fn(&Tensor, &Tensor) -> Result<Tensor> + 'a>;
+
+/// A perceptual distance with the name the outputs report.
+pub struct Perceptual<'a> {
+    pub name: String,
+    pub distance: Distance<'a>,
+}
+
+/// Where the optimisation starts.
+#[derive(Debug)]
+pub struct Start {
+    /// `(1, mapping_hidden)`.
+    pub w_s: Tensor,
+    /// `(1, 2·L_c·H)`: the appearance mapping network's raw output (f, β).
+    pub appearance_raw: Tensor,
+    /// (pitch, yaw) in radians.
+    pub pose: (f64, f64),
+}
+
+impl Start {
+    /// The paper's appearance start: the mean raw output over `n` random codes (10 000 in
+    /// the paper); `w_s` as given (the initialiser's, or the mean shape feature).
+    pub fn with_mean_appearance(g: &Generator, w_s: Tensor, pose: (f64, f64), n: i64) -> Self {
+        let t = g.truncation(1.0, n, 0);
+        Self { w_s, appearance_raw: t.appearance_mean, pose }
+    }
+
+    /// The mean-code start: the mean w_s and the mean appearance over `n` random codes.
+    pub fn mean(g: &Generator, pose: (f64, f64), n: i64) -> Self {
+        let (kind, device) = g.kind_device();
+        let z = StepRng::new(0, 0, Purpose::Truncation, kind, device).normal(&[n, g.cfg.latent_dim as i64]);
+        let w_s = tch::no_grad(|| g.shape_w(&z).mean_dim(0, true, kind));
+        Self::with_mean_appearance(g, w_s, pose, n)
+    }
+}
+
+/// One step's record.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepLog {
+    pub step: usize,
+    pub resolution: i64,
+    pub loss: f64,
+    pub mse: f64,
+    pub perceptual: f64,
+    pub prior: f64,
+    /// Seconds since the optimisation started, at the end of this step.
+    pub seconds: f64,
+}
+
+/// What the optimisation found.
+#[derive(Debug)]
+pub struct Inversion {
+    pub features: Features,
+    pub history: Vec<StepLog>,
+    /// Whether `patience` ended it before `steps`.
+    pub stopped_early: bool,
+}
+
+/// The rendered image `(1, 3, res, res)` of (`w_s`, raw appearance) at `pose`, with
+/// gradients through the rays in `subset` (all when `None`).
+pub fn render_at_pose(
+    renderer: &Renderer,
+    latents: &Latents,
+    pose: (f64, f64),
+    res: i64,
+    noise: &Noise,
+    subset: Option<&Tensor>,
+) -> Result<Tensor> {
+    let g = renderer.generator;
+    let (kind, device) = g.kind_device();
+    let poses = Poses::from_angles(&[pose], kind, device);
+    let rays = Rays::from_poses(&poses, res, renderer.camera.fov_deg);
+    let pixels = match subset {
+        None => renderer.render_rays(latents, &rays, noise)?.pixel,
+        Some(idx) => {
+            // The whole image without gradients, then the subset again with them at the
+            // very same sample depths, spliced in.
+            let full = tch::no_grad(|| renderer.render_rays(latents, &rays, noise))?;
+            let z = full.z.index_select(1, idx);
+            let part = renderer.render_at_depths(latents, &rays.select_rays(idx), &z)?;
+            full.pixel.detach().index_copy(1, idx, &part.pixel)
+        }
+    };
+    // (1, R, 3) in [0, 1] → (1, 3, res, res) in [−1, 1].
+    Ok(pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0)
+}
+
+/// Inverts `photo: (1, 3, R, R)` in [−1, 1] (any R; it is resized to each step's render
+/// size) from `start`, calling `progress` after every step.
+pub fn invert(
+    g: &Generator,
+    camera: &CameraConfig,
+    photo: &Tensor,
+    start: &Start,
+    cfg: &InvertConfig,
+    perceptual: Option<&Perceptual>,
+    progress: &mut dyn FnMut(&StepLog),
+) -> Result<Inversion> {
+    cfg.validate()?;
+    let s = photo.size();
+    if s.len() != 4 || s[0] != 1 || s[1] != 3 || s[2] != s[3] {
+        return Err(Error::Invalid(format!("the photo must be (1, 3, R, R), got {s:?}")));
+    }
+    let (kind, device) = g.kind_device();
+    let hidden = g.cfg.mapping_hidden_dim as i64;
+    let colour = 2 * (g.cfg.color_layers * g.cfg.hidden_dim) as i64;
+    if start.w_s.size() != [1, hidden] || start.appearance_raw.size() != [1, colour] {
+        return Err(Error::Invalid(format!(
+            "start features have shapes {:?} and {:?}, expected [1, {hidden}] and [1, {colour}]",
+            start.w_s.size(),
+            start.appearance_raw.size()
+        )));
+    }
+    let w0 = start.w_s.detach().to_kind(kind).to_device(device);
+    let a0 = start.appearance_raw.detach().to_kind(kind).to_device(device);
+    let params = [w0.copy().set_requires_grad(true), a0.copy().set_requires_grad(true)];
+    let mut adam = SmallAdam::new(&params, cfg.lr);
+    let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
+    let renderer = Renderer::new(g, camera, &rc)?;
+    let photo = photo.to_kind(Kind::Float).to_device(device);
+    let targets: std::collections::BTreeMap<i64, Tensor> =
+        [cfg.resolution_at(0), cfg.resolution].into_iter().map(|r| (r, resize(&photo, r))).collect();
+    let t0 = std::time::Instant::now();
+    let mut history = Vec::with_capacity(cfg.steps);
+    let (mut best, mut since_best, mut stopped_early) = (f64::INFINITY, 0usize, false);
+    for step in 0..cfg.steps {
+        let res = cfg.resolution_at(step);
+        let rays = res * res;
+        let rng = |p: u64| StepRng::new(cfg.seed, 3 * step as u64 + p, Purpose::InvertNoise, Kind::Float, device);
+        let n = cfg.num_steps as i64;
+        let noise =
+            Noise { jitter: Some(rng(0).uniform(&[1, rays, n])), importance: Some(rng(1).uniform(&[1, rays, n])) };
+        let subset = (cfg.ray_fraction < 1.0).then(|| {
+            let k = ((rays as f64 * cfg.ray_fraction).round() as i64).clamp(1, rays);
+            rng(2).uniform(&[rays]).argsort(0, false).narrow(0, 0, k).sort(0, false).0
+        });
+        let latents = Latents { shape: g.shape_from_w(&params[0], None), appearance: Film::from_raw(&params[1]) };
+        let img = render_at_pose(&renderer, &latents, start.pose, res, &noise, subset.as_ref())?;
+        let target = &targets[&res];
+        let mse = (&img - target).square().mean(Kind::Float);
+        let perc = match perceptual {
+            Some(p) if cfg.perceptual_weight > 0.0 => (p.distance)(&img, target)?.mean(Kind::Float),
+            _ => Tensor::zeros([], (Kind::Float, device)),
+        };
+        let prior = (&params[0] - &w0).square().mean(Kind::Float) * cfg.prior_shape
+            + (&params[1] - &a0).square().mean(Kind::Float) * cfg.prior_appearance;
+        let loss = &mse * cfg.mse_weight + &perc * cfg.perceptual_weight + &prior;
+        let value = loss.double_value(&[]);
+        if !value.is_finite() {
+            return Err(Error::Invalid(format!(
+                "the inversion loss is not finite at step {step} (lower invert.lr or check the photo)"
+            )));
+        }
+        adam.zero_grad();
+        loss.backward();
+        adam.step();
+        let log = StepLog {
+            step,
+            resolution: res,
+            loss: value,
+            mse: mse.double_value(&[]),
+            perceptual: perc.double_value(&[]),
+            prior: prior.double_value(&[]),
+            seconds: t0.elapsed().as_secs_f64(),
+        };
+        progress(&log);
+        history.push(log);
+        // Patience counts at full resolution only (a coarse loss is not comparable).
+        if res == cfg.resolution {
+            if value < best * (1.0 - cfg.min_improvement) {
+                best = value;
+                since_best = 0;
+            } else {
+                since_best += 1;
+                if cfg.patience > 0 && since_best >= cfg.patience {
+                    stopped_early = true;
+                    break;
+                }
+            }
+        }
+    }
+    let features = tch::no_grad(|| Features {
+        w_s: params[0].detach().copy(),
+        appearance: Film::from_raw(&params[1].detach()),
+        pose: Some(start.pose),
+        z: None,
+    });
+    Ok(Inversion { features, history, stopped_early })
+}
+
+/// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.
+pub fn resize(img: &Tensor, res: i64) -> Tensor {
+    let s = img.size();
+    if s[2] == res && s[3] == res {
+        return img.shallow_clone();
+    }
+    if s[2] > res {
+        img.internal_upsample_bilinear2d_aa([res, res], false, None, None)
+    } else {
+        img.upsample_bilinear2d([res, res], false, None, None)
+    }
+}
+
+/// Adam (betas 0.9, 0.999, eps 1e-8) over a few free tensors.
+struct SmallAdam {
+    params: Vec<Tensor>,
+    m: Vec<Tensor>,
+    v: Vec<Tensor>,
+    lr: f64,
+    t: i32,
+}
+
+impl SmallAdam {
+    fn new(params: &[Tensor], lr: f64) -> Self {
+        let zeros = || params.iter().map(|p| p.zeros_like().detach()).collect::<Vec<_>>();
+        Self { params: params.iter().map(|p| p.shallow_clone()).collect(), m: zeros(), v: zeros(), lr, t: 0 }
+    }
+
+    fn zero_grad(&mut self) {
+        for p in &mut self.params {
+            let mut g = p.grad();
+            if g.defined() {
+                let _ = g.zero_();
+            }
+        }
+    }
+
+    fn step(&mut self) {
+        const B1: f64 = 0.9;
+        const B2: f64 = 0.999;
+        self.t += 1;
+        let (bc1, bc2) = (1.0 - B1.powi(self.t), 1.0 - B2.powi(self.t));
+        tch::no_grad(|| {
+            for ((p, m), v) in self.params.iter_mut().zip(&mut self.m).zip(&mut self.v) {
+                let g = p.grad();
+                if !g.defined() {
+                    continue;
+                }
+                let _ = m.g_mul_scalar_(B1).g_add_(&(&g * (1.0 - B1)));
+                let _ = v.g_mul_scalar_(B2).g_add_(&(g.square() * (1.0 - B2)));
+                let denom = v.sqrt() / bc2.sqrt() + 1e-8;
+                let _ = p.g_sub_(&(&*m / &denom * (self.lr / bc1)));
+            }
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests;
