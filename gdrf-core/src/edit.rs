@@ -130,7 +130,8 @@ impl Features {
             Source::Seed(s) => Ok(Self::from_seed(g, *s)),
             Source::Features(p) => Self::load(p, g, generator_id),
             Source::Image(p) => Err(Error::Invalid(format!(
-                "source {}: inverting a photo needs gdrf-invert, which has not landed yet; give a seed:N or a feature file",
+                "source {}: invert the photo first (gdrf-invert {} --pose PITCH,YAW --out DIR) and pass DIR/features.safetensors",
+                p.display(),
                 p.display()
             ))),
         }

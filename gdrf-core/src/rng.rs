@@ -38,6 +38,13 @@ pub enum Purpose {
     EditNoise = 19,
     /// gdrf-invert: renderer noise and ray subsets of each optimisation step.
     InvertNoise = 20,
+    /// The coverage term's candidate codes and renderer noise.
+    CoverageCodes = 21,
+    CoverageJitter = 22,
+    CoverageImportance = 23,
+    /// The inversion initialiser's generated tuples and its batches.
+    InitData = 24,
+    InitBatches = 25,
 }
 
 /// A source of uniform and normal tensors.

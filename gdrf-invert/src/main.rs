@@ -9,6 +9,7 @@ use gdrf_core::edit::{generator_id, latents};
 use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::lpips::{Lpips, LpipsNet};
 use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
+use gdrf_core::invert::init::{self as init_stage, InitConfig, Initialiser};
 use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{invert, InvertConfig, Perceptual, Start, StepLog};
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
@@ -28,15 +29,84 @@ use tch::{Kind, Tensor};
 /// reconstruction.png, compare.png (photo | start | result), an orbit of novel views
 /// (orbit/frame-NNN.png and orbit.gif), loss.png and invert.json (settings, timings and
 /// the loss of every step).
+///
+/// `gdrf-invert train-init` trains the initialiser (--init) for a generator.
 #[derive(Parser)]
-#[command(version, about, long_about)]
+#[command(version, about, long_about, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct Cli {
-    /// The photo: PNG or JPEG, any size (non-square ones are centre-cropped, or padded
-    /// with --fit pad), RGBA composited on white.
-    photo: PathBuf,
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    invert: InvertArgs,
+}
+
+#[derive(clap::Subcommand)]
+enum Command {
+    /// Train the initialiser F (ResNet-34 from scratch, paper §5.2) on images the generator
+    /// renders: it predicts w_s and the camera pose of a photo. Writes --out atomically at
+    /// every validation and at the end (with its Adam state, so --resume continues it), and
+    /// --out with .json appended: the validation errors against the mean code's.
+    TrainInit(TrainInitArgs),
+}
+
+#[derive(clap::Args)]
+struct TrainInitArgs {
     /// Generator checkpoint (.safetensors); default: the shipped models/chairs-tiny.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     generator: Option<PathBuf>,
+    /// The initialiser file to write.
+    #[arg(long, short, default_value = "initialiser.safetensors")]
+    out: PathBuf,
+    /// Continue the training saved in --out.
+    #[arg(long)]
+    resume: bool,
+    /// Generated training tuples (the last --held-out are for validation).
+    #[arg(long, default_value_t = InitConfig::default().count)]
+    count: i64,
+    #[arg(long, default_value_t = InitConfig::default().held_out)]
+    held_out: i64,
+    /// Side of the generated images and of F's input.
+    #[arg(long, default_value_t = InitConfig::default().resolution)]
+    resolution: i64,
+    /// Samples per ray of the generated images.
+    #[arg(long, default_value_t = InitConfig::default().num_steps)]
+    samples: usize,
+    #[arg(long, default_value_t = InitConfig::default().steps)]
+    steps: i64,
+    #[arg(long, default_value_t = InitConfig::default().batch_size)]
+    batch_size: i64,
+    #[arg(long, default_value_t = InitConfig::default().lr)]
+    lr: f64,
+    #[arg(long, default_value_t = InitConfig::default().pose_weight)]
+    pose_weight: f64,
+    /// Weight of the paper's re-rendering term (renders every batch again with gradients).
+    #[arg(long, default_value_t = InitConfig::default().image_weight)]
+    image_weight: f64,
+    #[arg(long, default_value_t = InitConfig::default().eval_interval)]
+    eval_interval: i64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// No progress bars.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct InvertArgs {
+    /// The photo: PNG or JPEG, any size (non-square ones are centre-cropped, or padded
+    /// with --fit pad), RGBA composited on white.
+    #[arg(required = true)]
+    photo: Option<PathBuf>,
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-tiny.
+    #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
+    generator: Option<PathBuf>,
+    /// The initialiser (from `gdrf-invert train-init`): w_s starts at its prediction, and
+    /// its pose is used when --pose is not given. Without it, w_s starts at the mean code's.
+    #[arg(long, value_name = "FILE")]
+    init: Option<PathBuf>,
     /// Camera pose of the photo as PITCH,YAW in degrees (pitch from the +y axis, as
     /// gdrf-edit's --pitch/--yaw). Default: the camera's mean pose.
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
@@ -108,7 +178,12 @@ struct Cli {
 }
 
 fn main() {
-    if let Err(e) = run(Cli::parse()) {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Some(Command::TrainInit(a)) => train_init(a),
+        None => run(cli.invert),
+    };
+    if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }
@@ -128,7 +203,8 @@ fn parse_pose(s: &str) -> Result<(f64, f64)> {
     Ok((nums[0].to_radians(), nums[1].to_radians()))
 }
 
-fn run(a: Cli) -> Result<()> {
+fn run(a: InvertArgs) -> Result<()> {
+    let photo_path = a.photo.clone().expect("clap requires the photo");
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
     let cfg = InvertConfig {
@@ -158,10 +234,19 @@ fn run(a: Cli) -> Result<()> {
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
-    let photo = load_photo(&a.photo, a.mask.as_deref(), a.fit, a.resolution, dev)?;
+    let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, a.resolution, dev)?;
+    let init = a
+        .init
+        .as_deref()
+        .map(|p| Initialiser::load(p, &id, dev).with_context(|| format!("loading --init {}", p.display())))
+        .transpose()?;
     output_dir(&a.out, a.force)?;
 
-    let pose = pose.unwrap_or_else(|| {
+    let predicted = init.as_ref().map(|f| f.predict(&photo)).transpose()?;
+    if let Some((_, p)) = &predicted {
+        eprintln!("the initialiser's pose: pitch {:.1}°, yaw {:.1}°", p.0.to_degrees(), p.1.to_degrees());
+    }
+    let pose = pose.or(predicted.as_ref().map(|p| p.1)).unwrap_or_else(|| {
         eprintln!(
             "no --pose: using the camera's mean pose (pitch {:.1}°, yaw {:.1}°)",
             cam.v_mean.to_degrees(),
@@ -198,13 +283,19 @@ fn run(a: Cli) -> Result<()> {
     let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
     eprintln!(
         "inverting {} at {}² with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
-        a.photo.display(),
+        photo_path.display(),
         a.resolution,
         a.samples,
         a.samples,
         a.steps
     );
-    let start = Start::mean(g, pose, 10_000);
+    let start = match predicted {
+        Some((w, _)) => Start::with_mean_appearance(g, w, pose, 10_000),
+        None => {
+            eprintln!("no --init: w_s starts at the mean code's (gdrf-invert train-init trains an initialiser)");
+            Start::mean(g, pose, 10_000)
+        }
+    };
     let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
@@ -285,7 +376,8 @@ fn run(a: Cli) -> Result<()> {
     ];
     save_png(&a.out.join("loss.png"), &draw_panels(&panels, 2, 360, 240))?;
     let report = serde_json::json!({
-        "photo": a.photo.display().to_string(),
+        "photo": photo_path.display().to_string(),
+        "init": a.init.as_ref().map(|p| p.display().to_string()),
         "generator": gen_path.display().to_string(),
         "generator_id": id,
         "pose_deg": [pose.0.to_degrees(), pose.1.to_degrees()],
@@ -317,5 +409,92 @@ fn output_dir(dir: &Path, force: bool) -> Result<()> {
         bail!("--out {}: the folder already holds files; pass --force to write into it", dir.display());
     }
     std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
+    Ok(())
+}
+
+fn train_init(a: TrainInitArgs) -> Result<()> {
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    let cfg = InitConfig {
+        resolution: a.resolution,
+        num_steps: a.samples,
+        count: a.count,
+        held_out: a.held_out,
+        batch_size: a.batch_size,
+        steps: a.steps,
+        lr: a.lr,
+        pose_weight: a.pose_weight,
+        image_weight: a.image_weight,
+        eval_interval: a.eval_interval,
+        seed: a.seed,
+        ..Default::default()
+    };
+    cfg.validate()?;
+    if a.resume && !a.out.is_file() {
+        bail!("--resume: {} does not exist", a.out.display());
+    }
+    if !a.resume && a.out.exists() {
+        bail!("--out {} exists; pass --resume to continue it or choose another file", a.out.display());
+    }
+    let gen_path = a.generator.clone().unwrap_or_else(default_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
+    let id = generator_id(&m.vs, g);
+    eprintln!(
+        "training a ResNet-34 initialiser for {} on {} generated {}² images ({} held out), {} steps of {}; device {dev:?}, {threads} threads",
+        gen_path.display(),
+        cfg.count,
+        cfg.resolution,
+        cfg.held_out,
+        cfg.steps,
+        cfg.batch_size
+    );
+    let style = ProgressStyle::with_template("{msg:12} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
+        .expect("valid template");
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.count as u64) };
+    bar.set_style(style.clone());
+    bar.set_message("rendering");
+    let t0 = std::time::Instant::now();
+    let tuples = init_stage::generate(g, &cam, &cfg, &mut |d| bar.set_position(d as u64))?;
+    bar.finish_and_clear();
+    let generate_s = t0.elapsed().as_secs_f64();
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
+    bar.set_style(style);
+    bar.set_message("training");
+    let t1 = std::time::Instant::now();
+    let (_, evals) = init_stage::train(g, &cam, &id, &tuples, &cfg, &a.out, a.resume, &mut |step, ev| {
+        bar.set_position(step as u64);
+        if let Some(e) = ev {
+            bar.println(format!(
+                "step {}: held-out w_s MSE {:.4} (mean code {:.4}), pitch error {:.1}°, yaw error {:.1}°",
+                e.step, e.w_mse, e.mean_code_w_mse, e.pitch_error_deg, e.yaw_error_deg
+            ));
+        }
+    })?;
+    bar.finish_and_clear();
+    let train_s = t1.elapsed().as_secs_f64();
+    let last = evals.last().expect("at least one evaluation");
+    let report = serde_json::json!({
+        "generator": gen_path.display().to_string(),
+        "generator_id": id,
+        "config": cfg,
+        "generate_seconds": generate_s,
+        "train_seconds": train_s,
+        "device": format!("{dev:?}"),
+        "threads": threads,
+        "evaluations": evals,
+    });
+    let json_path = PathBuf::from(format!("{}.json", a.out.display()));
+    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "held-out w_s MSE {:.4} against the mean code's {:.4}; pose error pitch {:.1}°, yaw {:.1}°; rendering {generate_s:.0} s, training {train_s:.0} s; wrote {} and {}",
+        last.w_mse,
+        last.mean_code_w_mse,
+        last.pitch_error_deg,
+        last.yaw_error_deg,
+        a.out.display(),
+        json_path.display()
+    );
     Ok(())
 }

@@ -114,6 +114,11 @@ impl Generator {
         self.shape_from_w(&self.shape_w(z_s), trunc)
     }
 
+    /// The appearance mapping network's raw output (f, β) `(B, 2·L_c·H)` for codes `z_a`.
+    pub fn appearance_raw(&self, z_a: &Tensor) -> Tensor {
+        self.appearance_mapping.forward(z_a)
+    }
+
     /// Appearance modulation (γ_a, β_a) from z_a `(B, latent)`.
     pub fn appearance_from_z(&self, z_a: &Tensor, trunc: Option<&Truncation>) -> Film {
         let raw = self.appearance_mapping.forward(z_a);

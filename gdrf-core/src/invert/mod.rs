@@ -19,6 +19,7 @@
 //! - `coarse_fraction > 0`: the first steps compare at half resolution;
 //! - `patience > 0`: stop once the loss has not improved by `min_improvement` (relative)
 //!   for that many steps.
+pub mod init;
 pub mod photo;
 
 use crate::camera::{Poses, Rays};

@@ -40,6 +40,16 @@ pub struct LossConfig {
     /// (0 = full weight from step 0, as in the release), so that shapes can first vary with
     /// the code before smoothness, rigidity and normal consistency pull them together.
     pub reg_warmup: i64,
+    /// Weight of the coverage term (0 = off, as in the release): implicit maximum likelihood
+    /// (IMLE, Li & Malik 2018) on the generator. For each real image of the step,
+    /// `coverage_candidates` random codes are rendered at the real image's pose at
+    /// `coverage_resolution` without gradients; the nearest (pixel MSE) is rendered again at
+    /// the stage's resolution with gradients and pulled toward the real image by MSE. Every
+    /// real image thus claims a code, so the generator cannot cover the data with one
+    /// object. Needs the real images' poses.
+    pub coverage_weight: f64,
+    pub coverage_candidates: i64,
+    pub coverage_resolution: i64,
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
@@ -57,6 +67,9 @@ impl Default for LossConfig {
             diversity_cap: 0.1,
             diversity_pool: 4,
             reg_warmup: 0,
+            coverage_weight: 0.0,
+            coverage_candidates: 16,
+            coverage_resolution: 16,
             topk_interval: 2000.0,
             topk_floor: 0.6,
             reg: RegConfig::default(),
@@ -79,6 +92,24 @@ impl LossConfig {
             return Err(Error::Config(format!(
                 "loss.diversity_weight is {}, expected 0 (off) or a positive weight",
                 self.diversity_weight
+            )));
+        }
+        if !(self.coverage_weight >= 0.0 && self.coverage_weight.is_finite()) {
+            return Err(Error::Config(format!(
+                "loss.coverage_weight is {}, expected 0 (off) or a positive weight",
+                self.coverage_weight
+            )));
+        }
+        if self.coverage_candidates < 1 {
+            return Err(Error::Config(format!(
+                "loss.coverage_candidates is {}, expected at least 1",
+                self.coverage_candidates
+            )));
+        }
+        if !(2..=512).contains(&self.coverage_resolution) {
+            return Err(Error::Config(format!(
+                "loss.coverage_resolution is {}, expected 2 to 512 pixels",
+                self.coverage_resolution
             )));
         }
         if self.reg_warmup < 0 {

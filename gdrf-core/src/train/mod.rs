@@ -352,7 +352,7 @@ impl Trainer {
         let real_poses = real_poses.map(|p| p.to_device(self.device));
 
         let d = self.discriminator_step(&stage, at, &real, real_poses.as_ref(), d_lr)?;
-        let g = self.generator_step(&stage, at, g_lr)?;
+        let g = self.generator_step(&stage, at, g_lr, &real, real_poses.as_ref())?;
 
         let p = &mut self.progress;
         p.step += 1;
@@ -442,9 +442,80 @@ impl Trainer {
         Ok(self.apply(Net::D, &losses, lr))
     }
 
-    fn generator_step(&mut self, stage: &Stage, at: Schedule, lr: f64) -> Result<Update> {
-        let losses = self.generator_gradients(stage, at)?;
+    fn generator_step(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        lr: f64,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+    ) -> Result<Update> {
+        let mut losses = self.generator_gradients(stage, at)?;
+        if self.cfg.loss.coverage_weight > 0.0 {
+            let poses = real_poses.ok_or_else(|| {
+                Error::Config(
+                    "loss.coverage_weight needs the real images' poses; the dataset has none (see data.poses)".into(),
+                )
+            })?;
+            let c = self.coverage_gradients(stage, at, real, poses)?;
+            losses.total = &losses.total + &c * self.cfg.loss.coverage_weight;
+            losses.terms.push(("g_coverage", c));
+        }
         Ok(self.apply(Net::G, &losses, lr))
+    }
+
+    /// The coverage term (see [`crate::loss::LossConfig::coverage_weight`]): picks, for each
+    /// real image `(B, 3, S, S)` seen from `real_poses: (B, 2)`, the nearest of
+    /// `coverage_candidates` codes at low resolution, renders it at the real pose with
+    /// gradients, and accumulates the weighted MSE's gradient into G. Returns the MSE.
+    fn coverage_gradients(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: &Tensor,
+    ) -> Result<Tensor> {
+        let cfg = &self.cfg.loss;
+        let (b, res, step) = (real.size()[0], stage.resolution, at.step);
+        let k = cfg.coverage_candidates;
+        let small = cfg.coverage_resolution.min(res);
+        let latent = self.cfg.generator.latent_dim as i64;
+        let z = self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]);
+        let poses = crate::camera::Poses {
+            pitch: real_poses.narrow(1, 0, 1).repeat_interleave_self_int(k, 0, None),
+            yaw: real_poses.narrow(1, 1, 1).repeat_interleave_self_int(k, 0, None),
+        };
+        let mut rc = self.cfg.render_config(step);
+        rc.num_steps = stage.num_steps;
+        rc.jitter = false;
+        let renderer = self.live_renderer(&rc)?;
+        let gen = &self.generator;
+        // The candidates, without gradients and with fixed mid-interval importance samples.
+        let candidates = tch::no_grad(|| {
+            let lat = gen.latents(&z, &z, None);
+            renderer.render_image(&lat, &poses, small, &Noise::default())
+        })?
+        .rgb;
+        let target = crate::invert::resize(real, small).repeat_interleave_self_int(k, 0, None);
+        let dist = (candidates - target).square().mean_dim([1i64, 2, 3].as_slice(), false, Kind::Float).view([b, k]);
+        let best = dist.argmin(1, false) + Tensor::arange(b, (Kind::Int64, dist.device())) * k;
+        let z_best = z.index_select(0, &best);
+        let poses = crate::camera::Poses {
+            pitch: real_poses.narrow(1, 0, 1).shallow_clone(),
+            yaw: real_poses.narrow(1, 1, 1).shallow_clone(),
+        };
+        let shape = [b, res * res, stage.num_steps as i64];
+        let noise = Noise {
+            jitter: Some(self.rng(step, Purpose::CoverageJitter).uniform(&shape)),
+            importance: Some(self.rng(step, Purpose::CoverageImportance).uniform(&shape)),
+        };
+        let rc = self.cfg.render_config(step);
+        let renderer = self.live_renderer(&rc)?;
+        let lat = self.generator.latents(&z_best, &z_best, None);
+        let (img, _) = renderer.render_regions(&lat, &poses, res, 1, &noise)?;
+        let mse = (img - real).square().mean(Kind::Float);
+        (&mse * self.cfg.loss.coverage_weight).backward();
+        Ok(mse.detach())
     }
 
     /// Computes the generator's gradients of the step about to run and leaves them in
