@@ -325,7 +325,8 @@ fn run(a: InvertArgs) -> Result<()> {
             },
         };
         let p = Poses::from_angles(poses, Kind::Float, dev);
-        Ok(tch::no_grad(|| r.render_image(&lat, &p, view_res, &Noise::default()))?.rgb)
+        let noise = Noise::midpoints(poses.len() as i64, view_res * view_res, rc.num_steps as i64, dev);
+        Ok(tch::no_grad(|| r.render_image(&lat, &p, view_res, &noise))?.rgb)
     };
     let recon = view(&inv.features, &[pose])?;
     let start_features = gdrf_core::edit::Features {

@@ -136,7 +136,9 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
         let zb = z.narrow(0, i, b);
         let (img, w, a) = tch::no_grad(|| -> Result<_> {
             let lat = g.latents(&zb, &zb, None);
-            let img = r.render_image(&lat, &poses.narrow(i, b), cfg.resolution, &Noise::default())?.rgb;
+            let res = cfg.resolution;
+            let noise = Noise::midpoints(b, res * res, cfg.num_steps as i64, device);
+            let img = r.render_image(&lat, &poses.narrow(i, b), res, &noise)?.rgb;
             Ok((img, g.shape_w(&zb), g.appearance_raw(&zb)))
         })?;
         images.push(img);
@@ -316,9 +318,11 @@ pub fn train(
     let hidden = g.cfg.mapping_hidden_dim as i64;
     let (init, mut adam, start) = if resume {
         let (init, h, state) = Initialiser::load_with_state(out, Some(generator_id), device)?;
-        if &h.config != cfg {
+        // A longer run (or other validation points) may continue; anything else would not.
+        let core = |c: &InitConfig| InitConfig { steps: 0, eval_interval: 1, ..c.clone() };
+        if core(&h.config) != core(cfg) {
             return Err(Error::Config(format!(
-                "{}: saved with other initialiser settings; resume with the same ones",
+                "{}: saved with other initialiser settings; resume with the same ones (only the steps may grow)",
                 out.display()
             )));
         }
@@ -356,7 +360,9 @@ pub fn train(
                 shape: g.shape_from_w(&w, None),
                 appearance: Film::from_raw(&tuples.appearance_raw.index_select(0, &idx)),
             };
-            let (re, _) = renderer.render_regions(&lat, &poses, cfg.image_resolution, 1, &Noise::default())?;
+            let (r2, n) = (cfg.image_resolution * cfg.image_resolution, cfg.num_steps as i64);
+            let noise = Noise::midpoints(cfg.batch_size, r2, n, device);
+            let (re, _) = renderer.render_regions(&lat, &poses, cfg.image_resolution, 1, &noise)?;
             loss += (re - small.index_select(0, &idx)).square().mean(Kind::Float) * cfg.image_weight;
         }
         last_loss = loss.double_value(&[]);
@@ -389,4 +395,71 @@ pub fn train(
         evals.push(evaluate(&init, tuples, &held, &mean_w, cfg.steps, last_loss));
     }
     Ok((init, evals))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::GeneratorConfig;
+
+    fn small() -> (nn::VarStore, Generator) {
+        tch::manual_seed(2);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let g = Generator::new(&vs.root(), &cfg).unwrap();
+        (vs, g)
+    }
+
+    fn cfg() -> InitConfig {
+        InitConfig {
+            resolution: 16,
+            num_steps: 4,
+            count: 12,
+            held_out: 4,
+            batch_size: 4,
+            steps: 4,
+            eval_interval: 2,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn tuples_are_reproducible_and_training_resumes_exactly() {
+        let (_vs, g) = small();
+        let cam = CameraConfig::default();
+        let t = generate(&g, &cam, &cfg(), &mut |_| {}).unwrap();
+        assert_eq!(t.images.size(), [12, 3, 16, 16]);
+        assert_eq!(t.w_s.size(), [12, 16]);
+        assert_eq!(t.poses.size(), [12, 2]);
+        assert!(t.images.equal(&generate(&g, &cam, &cfg(), &mut |_| {}).unwrap().images));
+
+        let dir = std::env::temp_dir().join(format!("gdrf-init-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (a, b) = (dir.join("a.safetensors"), dir.join("b.safetensors"));
+        let mut steps = Vec::new();
+        let (full, evals) = train(&g, &cam, "gen", &t, &cfg(), &a, false, &mut |s, _| steps.push(s)).unwrap();
+        assert_eq!(steps, [1, 2, 3, 4]);
+        assert_eq!(evals.iter().map(|e| e.step).collect::<Vec<_>>(), [2, 4]);
+        assert!(evals.iter().all(|e| e.w_mse.is_finite() && e.mean_code_w_mse > 0.0));
+        // Two steps, then a resume from the file saved at step 2, gives the same weights
+        // (network, batch-norm statistics) as the uninterrupted four.
+        train(&g, &cam, "gen", &t, &InitConfig { steps: 2, ..cfg() }, &b, false, &mut |_, _| {}).unwrap();
+        let (_, h, _) = Initialiser::load_with_state(&b, None, Device::Cpu).unwrap();
+        assert_eq!(h.step, 2);
+        let (resumed, _) = train(&g, &cam, "gen", &t, &cfg(), &b, true, &mut |_, _| {}).unwrap();
+        for (name, v) in full.vs.variables() {
+            assert!(v.equal(&resumed.vs.variables()[&name]), "{name}");
+        }
+        let other = InitConfig { lr: 0.5, ..cfg() };
+        let e = train(&g, &cam, "gen", &t, &other, &b, true, &mut |_, _| {}).err().map(|e| e.to_string());
+        assert!(e.as_deref().unwrap_or("").contains("other initialiser settings"), "{e:?}");
+        // Another generator's initialiser is refused; predictions are finite.
+        let err = Initialiser::load(&a, "other", Device::Cpu).err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.contains("other") && err.contains("gen"), "{err}");
+        let (w, (pitch, yaw)) = full.predict(&t.images.narrow(0, 0, 1)).unwrap();
+        assert_eq!(w.size(), [1, 16]);
+        assert!(pitch.is_finite() && yaw.is_finite());
+        assert!(full.predict(&t.images).is_err());
+        std::fs::remove_dir_all(dir).ok();
+    }
 }

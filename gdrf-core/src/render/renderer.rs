@@ -22,6 +22,13 @@ pub struct Noise {
 }
 
 impl Noise {
+    /// No jitter and the importance uniforms (k + ½)/N of every ray `(B, R, N)`: a render that
+    /// draws no random number (the same image every time).
+    pub fn midpoints(b: i64, r: i64, n: i64, device: tch::Device) -> Noise {
+        let u = (Tensor::arange(n, (tch::Kind::Float, device)) + 0.5) / n as f64;
+        Noise { jitter: None, importance: Some(u.view([1, 1, n]).expand([b, r, n], false)) }
+    }
+
     /// Rays `[start, start+len)` of images `[b, b+nb)`.
     pub(crate) fn slice(&self, b: i64, nb: i64, start: i64, len: i64) -> Noise {
         let f = |t: &Option<Tensor>| t.as_ref().map(|t| t.narrow(0, b, nb).narrow(1, start, len));

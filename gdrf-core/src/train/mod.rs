@@ -493,7 +493,8 @@ impl Trainer {
         // The candidates, without gradients and with fixed mid-interval importance samples.
         let candidates = tch::no_grad(|| {
             let lat = gen.latents(&z, &z, None);
-            renderer.render_image(&lat, &poses, small, &Noise::default())
+            let noise = Noise::midpoints(b * k, small * small, stage.num_steps as i64, z.device());
+            renderer.render_image(&lat, &poses, small, &noise)
         })?
         .rgb;
         let target = crate::invert::resize(real, small).repeat_interleave_self_int(k, 0, None);
