@@ -8,10 +8,10 @@ mod common;
 use common::{assert_close, read_tensors, run_python, TempDir};
 use gdrf_core::data::synth::{self, Category, SynthOptions};
 use gdrf_core::data::{self as gdata, LoadOptions};
-use gdrf_core::eval::distance;
 use gdrf_core::eval::effnet::{EfficientNetLite0, CHAIR_CLASSES, INPUT_SIZE};
 use gdrf_core::eval::perceptual::EffnetPerceptual;
 use gdrf_core::eval::weights::Weights;
+use gdrf_core::eval::{distance, fidelity};
 use std::path::PathBuf;
 use tch::{Device, Kind, Tensor};
 
@@ -175,4 +175,26 @@ fn distances_match_numpy_and_scipy() {
     println!("KID {} ± {} (numpy {mean_want})", k.mean, k.std);
     assert!((k.mean - mean_want).abs() <= 1e-12 + 1e-9 * mean_want.abs(), "KID {} vs numpy {mean_want}", k.mean);
     assert!(mean_want > 0.0);
+}
+
+#[test]
+fn psnr_and_ssim_match_the_pytorch_reference() {
+    let tmp = TempDir::new("fidelity-ref");
+    tch::manual_seed(6);
+    let opts = (Kind::Float, Device::Cpu);
+    // Structured images and a noisy, shifted copy: SSIM well inside (0, 1).
+    let base = Tensor::rand([3, 3, 8, 8], opts).upsample_bilinear2d([24, 24], false, None, None) * 2.0 - 1.0;
+    let other = (&base * 0.8 + Tensor::randn([3, 3, 24, 24], opts) * 0.1 + 0.05).clamp(-1.0, 1.0);
+    let input = tmp.path("in.safetensors");
+    Tensor::write_safetensors(&[("a", &base), ("b", &other)], &input).unwrap();
+    let out = tmp.path("out.safetensors");
+    run_python("reference/fidelity_ref.py", &[input.to_str().unwrap(), out.to_str().unwrap()]);
+    let want = read_tensors(&out);
+    let s = fidelity::ssim(&base, &other).unwrap();
+    let p = fidelity::psnr(&base, &other).unwrap();
+    println!("SSIM {s:?} PSNR {p:?}");
+    assert_close("ssim", &s, &want["ssim"], 1e-10, 1e-9);
+    assert_close("psnr", &p, &want["psnr"], 1e-9, 1e-9);
+    let v: Vec<f64> = Vec::try_from(&s).unwrap();
+    assert!(v.iter().all(|x| *x > 0.2 && *x < 0.99), "{v:?}");
 }

@@ -1,5 +1,7 @@
 //! gdrf-invert: a photo into shape and appearance features (paper §5), written as the
 //! feature file gdrf-edit reads.
+mod bench;
+
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use gdrf_core::camera::Poses;
@@ -47,6 +49,10 @@ enum Command {
     /// every validation and at the end (with its Adam state, so --resume continues it), and
     /// --out with .json appended: the validation errors against the mean code's.
     TrainInit(TrainInitArgs),
+    /// Inversion accuracy against wall time on held-out objects of a procedural dataset:
+    /// input-view and novel-view PSNR/SSIM against the ground truth, for the mean-code
+    /// start, the initialiser and each speed option. Writes JSON, a plot and a table.
+    Bench(bench::BenchArgs),
 }
 
 #[derive(clap::Args)]
@@ -181,6 +187,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Command::TrainInit(a)) => train_init(a),
+        Some(Command::Bench(a)) => bench::bench(a),
         None => run(cli.invert),
     };
     if let Err(e) = result {
@@ -189,7 +196,7 @@ fn main() {
     }
 }
 
-fn default_generator() -> PathBuf {
+pub(crate) fn default_generator() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/chairs-tiny/generator.safetensors")
 }
 

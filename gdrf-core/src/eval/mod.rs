@@ -3,6 +3,7 @@
 //! trained on the procedural dataset's ground truth.
 pub mod distance;
 pub mod effnet;
+pub mod fidelity;
 pub mod inception;
 pub mod lpips;
 pub mod perceptual;

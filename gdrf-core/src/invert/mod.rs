@@ -174,7 +174,7 @@ pub struct StepLog {
     pub mse: f64,
     pub perceptual: f64,
     pub prior: f64,
-    /// Seconds since the optimisation started, at the end of this step.
+    /// Seconds spent in the optimisation's steps so far, this one included.
     pub seconds: f64,
 }
 
@@ -216,45 +216,98 @@ pub fn render_at_pose(
     Ok(pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0)
 }
 
-/// Inverts `photo: (1, 3, R, R)` in [−1, 1] (any R; it is resized to each step's render
-/// size) from `start`, calling `progress` after every step.
-pub fn invert(
-    g: &Generator,
-    camera: &CameraConfig,
-    photo: &Tensor,
-    start: &Start,
-    cfg: &InvertConfig,
-    perceptual: Option<&Perceptual>,
-    progress: &mut dyn FnMut(&StepLog),
-) -> Result<Inversion> {
-    cfg.validate()?;
-    let s = photo.size();
-    if s.len() != 4 || s[0] != 1 || s[1] != 3 || s[2] != s[3] {
-        return Err(Error::Invalid(format!("the photo must be (1, 3, R, R), got {s:?}")));
+/// The optimisation as explicit state, one [`Inverter::step`] at a time, so that a caller
+/// (the benchmark) can look at the features between steps without its time counting.
+pub struct Inverter<'a> {
+    g: &'a Generator,
+    camera: &'a CameraConfig,
+    cfg: InvertConfig,
+    perceptual: Option<&'a Perceptual<'a>>,
+    rc: RenderConfig,
+    pose: (f64, f64),
+    w0: Tensor,
+    a0: Tensor,
+    /// w_s `(1, H)` and the raw appearance `(1, 2·L_c·H)`, both requiring grad.
+    params: [Tensor; 2],
+    adam: SmallAdam,
+    /// The photo at each render size used.
+    targets: std::collections::BTreeMap<i64, Tensor>,
+    best: f64,
+    since_best: usize,
+    stopped_early: bool,
+    /// Seconds spent inside `step`.
+    seconds: f64,
+    pub history: Vec<StepLog>,
+}
+
+impl<'a> Inverter<'a> {
+    /// Checks the inputs and sets up the optimisation of `photo: (1, 3, R, R)` in [−1, 1]
+    /// (any R; it is resized to each step's render size) from `start`.
+    pub fn new(
+        g: &'a Generator,
+        camera: &'a CameraConfig,
+        photo: &Tensor,
+        start: &Start,
+        cfg: &InvertConfig,
+        perceptual: Option<&'a Perceptual<'a>>,
+    ) -> Result<Self> {
+        cfg.validate()?;
+        let s = photo.size();
+        if s.len() != 4 || s[0] != 1 || s[1] != 3 || s[2] != s[3] {
+            return Err(Error::Invalid(format!("the photo must be (1, 3, R, R), got {s:?}")));
+        }
+        let (kind, device) = g.kind_device();
+        let hidden = g.cfg.mapping_hidden_dim as i64;
+        let colour = 2 * (g.cfg.color_layers * g.cfg.hidden_dim) as i64;
+        if start.w_s.size() != [1, hidden] || start.appearance_raw.size() != [1, colour] {
+            return Err(Error::Invalid(format!(
+                "start features have shapes {:?} and {:?}, expected [1, {hidden}] and [1, {colour}]",
+                start.w_s.size(),
+                start.appearance_raw.size()
+            )));
+        }
+        let w0 = start.w_s.detach().to_kind(kind).to_device(device);
+        let a0 = start.appearance_raw.detach().to_kind(kind).to_device(device);
+        let params = [w0.copy().set_requires_grad(true), a0.copy().set_requires_grad(true)];
+        let adam = SmallAdam::new(&params, cfg.lr);
+        let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
+        rc.validate()?;
+        let photo = photo.to_kind(Kind::Float).to_device(device);
+        let targets = [cfg.resolution_at(0), cfg.resolution].into_iter().map(|r| (r, resize(&photo, r))).collect();
+        Ok(Self {
+            g,
+            camera,
+            cfg: cfg.clone(),
+            perceptual,
+            rc,
+            pose: start.pose,
+            w0,
+            a0,
+            params,
+            adam,
+            targets,
+            best: f64::INFINITY,
+            since_best: 0,
+            stopped_early: false,
+            seconds: 0.0,
+            history: Vec::with_capacity(cfg.steps),
+        })
     }
-    let (kind, device) = g.kind_device();
-    let hidden = g.cfg.mapping_hidden_dim as i64;
-    let colour = 2 * (g.cfg.color_layers * g.cfg.hidden_dim) as i64;
-    if start.w_s.size() != [1, hidden] || start.appearance_raw.size() != [1, colour] {
-        return Err(Error::Invalid(format!(
-            "start features have shapes {:?} and {:?}, expected [1, {hidden}] and [1, {colour}]",
-            start.w_s.size(),
-            start.appearance_raw.size()
-        )));
+
+    /// Whether the optimisation has ended (all steps, or early stop).
+    pub fn done(&self) -> bool {
+        self.stopped_early || self.history.len() >= self.cfg.steps
     }
-    let w0 = start.w_s.detach().to_kind(kind).to_device(device);
-    let a0 = start.appearance_raw.detach().to_kind(kind).to_device(device);
-    let params = [w0.copy().set_requires_grad(true), a0.copy().set_requires_grad(true)];
-    let mut adam = SmallAdam::new(&params, cfg.lr);
-    let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
-    let renderer = Renderer::new(g, camera, &rc)?;
-    let photo = photo.to_kind(Kind::Float).to_device(device);
-    let targets: std::collections::BTreeMap<i64, Tensor> =
-        [cfg.resolution_at(0), cfg.resolution].into_iter().map(|r| (r, resize(&photo, r))).collect();
-    let t0 = std::time::Instant::now();
-    let mut history = Vec::with_capacity(cfg.steps);
-    let (mut best, mut since_best, mut stopped_early) = (f64::INFINITY, 0usize, false);
-    for step in 0..cfg.steps {
+
+    /// One Adam step; `None` once [`Self::done`].
+    pub fn step(&mut self) -> Result<Option<&StepLog>> {
+        if self.done() {
+            return Ok(None);
+        }
+        let t0 = std::time::Instant::now();
+        let (cfg, g) = (&self.cfg, self.g);
+        let step = self.history.len();
+        let device = self.w0.device();
         let res = cfg.resolution_at(step);
         let rays = res * res;
         let rng = |p: u64| StepRng::new(cfg.seed, 3 * step as u64 + p, Purpose::InvertNoise, Kind::Float, device);
@@ -265,16 +318,18 @@ pub fn invert(
             let k = ((rays as f64 * cfg.ray_fraction).round() as i64).clamp(1, rays);
             rng(2).uniform(&[rays]).argsort(0, false).narrow(0, 0, k).sort(0, false).0
         });
-        let latents = Latents { shape: g.shape_from_w(&params[0], None), appearance: Film::from_raw(&params[1]) };
-        let img = render_at_pose(&renderer, &latents, start.pose, res, &noise, subset.as_ref())?;
-        let target = &targets[&res];
+        let renderer = Renderer::new(g, self.camera, &self.rc)?;
+        let p = &self.params;
+        let latents = Latents { shape: g.shape_from_w(&p[0], None), appearance: Film::from_raw(&p[1]) };
+        let img = render_at_pose(&renderer, &latents, self.pose, res, &noise, subset.as_ref())?;
+        let target = &self.targets[&res];
         let mse = (&img - target).square().mean(Kind::Float);
-        let perc = match perceptual {
-            Some(p) if cfg.perceptual_weight > 0.0 => (p.distance)(&img, target)?.mean(Kind::Float),
+        let perc = match self.perceptual {
+            Some(pd) if cfg.perceptual_weight > 0.0 => (pd.distance)(&img, target)?.mean(Kind::Float),
             _ => Tensor::zeros([], (Kind::Float, device)),
         };
-        let prior = (&params[0] - &w0).square().mean(Kind::Float) * cfg.prior_shape
-            + (&params[1] - &a0).square().mean(Kind::Float) * cfg.prior_appearance;
+        let prior = (&p[0] - &self.w0).square().mean(Kind::Float) * cfg.prior_shape
+            + (&p[1] - &self.a0).square().mean(Kind::Float) * cfg.prior_appearance;
         let loss = &mse * cfg.mse_weight + &perc * cfg.perceptual_weight + &prior;
         let value = loss.double_value(&[]);
         if !value.is_finite() {
@@ -282,9 +337,10 @@ pub fn invert(
                 "the inversion loss is not finite at step {step} (lower invert.lr or check the photo)"
             )));
         }
-        adam.zero_grad();
+        self.adam.zero_grad();
         loss.backward();
-        adam.step();
+        self.adam.step();
+        self.seconds += t0.elapsed().as_secs_f64();
         let log = StepLog {
             step,
             resolution: res,
@@ -292,31 +348,52 @@ pub fn invert(
             mse: mse.double_value(&[]),
             perceptual: perc.double_value(&[]),
             prior: prior.double_value(&[]),
-            seconds: t0.elapsed().as_secs_f64(),
+            seconds: self.seconds,
         };
-        progress(&log);
-        history.push(log);
         // Patience counts at full resolution only (a coarse loss is not comparable).
         if res == cfg.resolution {
-            if value < best * (1.0 - cfg.min_improvement) {
-                best = value;
-                since_best = 0;
+            if value < self.best * (1.0 - cfg.min_improvement) {
+                self.best = value;
+                self.since_best = 0;
             } else {
-                since_best += 1;
-                if cfg.patience > 0 && since_best >= cfg.patience {
-                    stopped_early = true;
-                    break;
-                }
+                self.since_best += 1;
+                self.stopped_early = cfg.patience > 0 && self.since_best >= cfg.patience;
             }
         }
+        self.history.push(log);
+        Ok(self.history.last())
     }
-    let features = tch::no_grad(|| Features {
-        w_s: params[0].detach().copy(),
-        appearance: Film::from_raw(&params[1].detach()),
-        pose: Some(start.pose),
-        z: None,
-    });
-    Ok(Inversion { features, history, stopped_early })
+
+    /// The current features (detached copies).
+    pub fn features(&self) -> Features {
+        tch::no_grad(|| Features {
+            w_s: self.params[0].detach().copy(),
+            appearance: Film::from_raw(&self.params[1].detach()),
+            pose: Some(self.pose),
+            z: None,
+        })
+    }
+
+    /// Steps to the end, calling `progress` after each.
+    pub fn run(mut self, progress: &mut dyn FnMut(&StepLog)) -> Result<Inversion> {
+        while let Some(log) = self.step()? {
+            progress(log);
+        }
+        Ok(Inversion { features: self.features(), history: self.history, stopped_early: self.stopped_early })
+    }
+}
+
+/// [`Inverter`] from `start` to the end, calling `progress` after every step.
+pub fn invert(
+    g: &Generator,
+    camera: &CameraConfig,
+    photo: &Tensor,
+    start: &Start,
+    cfg: &InvertConfig,
+    perceptual: Option<&Perceptual>,
+    progress: &mut dyn FnMut(&StepLog),
+) -> Result<Inversion> {
+    Inverter::new(g, camera, photo, start, cfg, perceptual)?.run(progress)
 }
 
 /// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.

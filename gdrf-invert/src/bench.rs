@@ -1,0 +1,301 @@
+//! `gdrf-invert bench`: inversion accuracy against wall time on held-out objects of a
+//! procedural dataset, whose ground truth renders any object at any pose.
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use gdrf_core::camera::Poses;
+use gdrf_core::checkpoint::load_generator;
+use gdrf_core::data::synth::{render_object, Metadata, Split};
+use gdrf_core::device;
+use gdrf_core::edit::{generator_id, latents, Features};
+use gdrf_core::eval::effnet::EfficientNetLite0;
+use gdrf_core::eval::fidelity::{psnr, ssim};
+use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
+use gdrf_core::invert::init::Initialiser;
+use gdrf_core::invert::photo::{load_photo, Fit};
+use gdrf_core::invert::{InvertConfig, Inverter, Perceptual, Start};
+use gdrf_core::plot::{draw_panels, Panel, Series};
+use gdrf_core::render::{Noise, Renderer};
+use gdrf_core::{CameraConfig, Generator, RenderConfig};
+use serde::Serialize;
+use std::path::PathBuf;
+use tch::{Device, Kind, Tensor};
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Generator checkpoint; default: the shipped models/chairs-tiny.
+    #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
+    generator: Option<PathBuf>,
+    /// The initialiser (from train-init); without it only the mean-code start is measured.
+    #[arg(long, value_name = "FILE")]
+    init: Option<PathBuf>,
+    /// A procedural dataset folder (its held-out objects are inverted).
+    #[arg(long, default_value = "data/chairs-64")]
+    dataset: PathBuf,
+    /// Held-out objects to invert.
+    #[arg(long, default_value_t = 4)]
+    images: usize,
+    /// Novel views per object (yaw offsets spread over the turn, same pitch).
+    #[arg(long, default_value_t = 4)]
+    views: usize,
+    /// Steps of the full optimisation (the paper: 2 000).
+    #[arg(long, default_value_t = 200)]
+    steps: usize,
+    /// Render side during the optimisation and for every comparison.
+    #[arg(long, default_value_t = 32)]
+    resolution: i64,
+    #[arg(long, default_value_t = 12)]
+    samples: usize,
+    /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
+    #[arg(long, default_value = "docs/bench/invert")]
+    out: PathBuf,
+    #[arg(long, default_value = "auto")]
+    device: String,
+}
+
+/// One measured point of one method.
+#[derive(Serialize, Clone)]
+struct Point {
+    method: String,
+    /// The step budget at this point, and the steps actually run (fewer after an early stop),
+    /// averaged over the objects.
+    steps: usize,
+    steps_run: f64,
+    /// Seconds inside the optimisation's steps (the initialiser's prediction included),
+    /// averaged over the objects.
+    seconds: f64,
+    input_psnr: f64,
+    input_ssim: f64,
+    novel_psnr: f64,
+    novel_ssim: f64,
+}
+
+struct Case {
+    photo: Tensor,
+    pose: (f64, f64),
+    /// `(V, 3, R, R)` ground truth and their poses.
+    novel: Tensor,
+    novel_poses: Vec<(f64, f64)>,
+}
+
+fn to_tensor(rgb: &[f32], res: i64) -> Tensor {
+    Tensor::from_slice(rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0
+}
+
+fn render(g: &Generator, cam: &CameraConfig, f: &Features, poses: &[(f64, f64)], res: i64, n: usize) -> Result<Tensor> {
+    let rc = RenderConfig { num_steps: n, jitter: false, ..Default::default() };
+    let r = Renderer::new(g, cam, &rc)?;
+    let one = latents(g, f, f, None);
+    let k = poses.len() as i64;
+    let rep = |t: &Tensor| t.repeat([k, 1]);
+    let lat = gdrf_core::Latents {
+        shape: gdrf_core::nn::film::Film { gamma: rep(&one.shape.gamma), beta: rep(&one.shape.beta) },
+        appearance: gdrf_core::nn::film::Film { gamma: rep(&one.appearance.gamma), beta: rep(&one.appearance.beta) },
+    };
+    let dev = one.shape.gamma.device();
+    let p = Poses::from_angles(poses, Kind::Float, dev);
+    Ok(tch::no_grad(|| r.render_image(&lat, &p, res, &Noise::midpoints(k, res * res, n as i64, dev)))?.rgb)
+}
+
+fn mean(v: &Tensor) -> f64 {
+    f64::try_from(v.mean(Kind::Double)).unwrap_or(f64::NAN)
+}
+
+/// Fidelity of `f` on `case` (input view and novel views).
+fn score(g: &Generator, cam: &CameraConfig, f: &Features, case: &Case, res: i64, n: usize) -> Result<[f64; 4]> {
+    let at_input = render(g, cam, f, &[case.pose], res, n)?;
+    let novel = render(g, cam, f, &case.novel_poses, res, n)?;
+    Ok([
+        mean(&psnr(&at_input, &case.photo)?),
+        mean(&ssim(&at_input, &case.photo)?),
+        mean(&psnr(&novel, &case.novel)?),
+        mean(&ssim(&novel, &case.novel)?),
+    ])
+}
+
+pub fn bench(a: BenchArgs) -> Result<()> {
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    if a.images == 0 || a.views == 0 || a.steps == 0 {
+        bail!("--images, --views and --steps must be at least 1");
+    }
+    let gen_path = a.generator.clone().unwrap_or_else(crate::default_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
+    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
+    let id = generator_id(&m.vs, g);
+    let init = a.init.as_deref().map(|p| Initialiser::load(p, &id, dev)).transpose()?;
+    let meta = Metadata::load(&a.dataset)?;
+    let mut opts = meta.options.clone();
+    opts.resolution = a.resolution as usize;
+    let held: Vec<_> = meta.images.iter().filter(|r| r.split == Split::HeldOut).take(a.images).collect();
+    if held.len() < a.images {
+        bail!("{} has {} held-out images, --images asks for {}", a.dataset.display(), held.len(), a.images);
+    }
+    let res = a.resolution;
+    let mut cases = Vec::new();
+    for r in &held {
+        let photo = load_photo(&a.dataset.join(&r.file), None, Fit::Crop, res, dev)?;
+        let novel_poses: Vec<(f64, f64)> =
+            (1..=a.views).map(|k| (r.pitch, r.yaw + std::f64::consts::TAU * k as f64 / (a.views + 1) as f64)).collect();
+        let novel = novel_poses
+            .iter()
+            .map(|p| Ok(to_tensor(&render_object(&r.shape, &r.appearance, p.0, p.1, &opts)?.rgb, res)))
+            .collect::<Result<Vec<_>>>()?;
+        cases.push(Case { photo, pose: (r.pitch, r.yaw), novel: Tensor::cat(&novel, 0).to_device(dev), novel_poses });
+    }
+    let effnet = EfficientNetLite0::load(&EfficientNetLite0::default_path(), dev)
+        .context("the effnet perceptual term needs weights/efficientnet-lite0.safetensors (run scripts/setup.sh)")?;
+    let d = EffnetPerceptual { net: &effnet, size: 224 };
+    let perc = Perceptual { name: perceptual::NAME.into(), distance: Box::new(move |x, y| d.distance(x, y)) };
+    let base = InvertConfig { steps: a.steps, resolution: res, num_steps: a.samples, ..Default::default() };
+    let checkpoints: Vec<usize> = {
+        let mut v: Vec<usize> =
+            [0.0, 0.05, 0.1, 0.25, 0.5, 1.0].iter().map(|f| (f * a.steps as f64).round() as usize).collect();
+        v.dedup();
+        v
+    };
+    // (name, uses the initialiser, config)
+    let mut methods: Vec<(String, bool, InvertConfig)> = vec![("mean code".into(), false, base.clone())];
+    if init.is_some() {
+        methods.push(("initialiser".into(), true, base.clone()));
+    }
+    let with_init = init.is_some();
+    let tag = if with_init { "initialiser" } else { "mean code" };
+    methods.push((format!("{tag}, rays 1/4"), with_init, InvertConfig { ray_fraction: 0.25, ..base.clone() }));
+    methods.push((format!("{tag}, coarse half"), with_init, InvertConfig { coarse_fraction: 0.5, ..base.clone() }));
+    methods.push((format!("{tag}, patience 20"), with_init, InvertConfig { patience: 20, ..base.clone() }));
+    eprintln!(
+        "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
+        cases.len(),
+        a.dataset.display(),
+        a.views,
+        a.steps,
+        methods.len()
+    );
+    let mut points: Vec<Point> = Vec::new();
+    let mut pose_errors = Vec::new();
+    for (name, use_init, cfg) in &methods {
+        // Sums over the cases, per checkpoint.
+        let mut sums = vec![[0.0f64; 6]; checkpoints.len()];
+        for case in &cases {
+            let t0 = std::time::Instant::now();
+            let start = match (use_init, &init) {
+                (true, Some(f)) => {
+                    let (w, p) = f.predict(&case.photo)?;
+                    let err = ((p.0 - case.pose.0).abs().to_degrees(), {
+                        let d = p.1 - case.pose.1;
+                        d.sin().atan2(d.cos()).abs().to_degrees()
+                    });
+                    if name == "initialiser" {
+                        pose_errors.push(err);
+                    }
+                    Start::with_mean_appearance(g, w, case.pose, 10_000)
+                }
+                _ => Start::mean(g, case.pose, 10_000),
+            };
+            let start_seconds = t0.elapsed().as_secs_f64();
+            let mut inv = Inverter::new(g, &cam, &case.photo, &start, cfg, Some(&perc))?;
+            let mut last = (0usize, 0.0f64);
+            for (ci, &cp) in checkpoints.iter().enumerate() {
+                while inv.history.len() < cp && !inv.done() {
+                    if let Some(l) = inv.step()? {
+                        last = (l.step + 1, l.seconds);
+                    }
+                }
+                let s = score(g, &cam, &inv.features(), case, res, a.samples)?;
+                let row = &mut sums[ci];
+                row[0] += last.1 + start_seconds;
+                for k in 0..4 {
+                    row[k + 1] += s[k];
+                }
+                row[5] += last.0 as f64;
+            }
+            eprint!(".");
+        }
+        let n = cases.len() as f64;
+        for (ci, &cp) in checkpoints.iter().enumerate() {
+            let r = &sums[ci];
+            points.push(Point {
+                method: name.clone(),
+                steps: cp,
+                steps_run: r[5] / n,
+                seconds: r[0] / n,
+                input_psnr: r[1] / n,
+                input_ssim: r[2] / n,
+                novel_psnr: r[3] / n,
+                novel_ssim: r[4] / n,
+            });
+        }
+        eprintln!(" {name}");
+    }
+    write_outputs(&a, &points, &pose_errors, &gen_path, dev, threads)
+}
+
+fn write_outputs(
+    a: &BenchArgs,
+    points: &[Point],
+    pose_errors: &[(f64, f64)],
+    gen: &std::path::Path,
+    dev: Device,
+    threads: usize,
+) -> Result<()> {
+    let methods: Vec<String> = points.iter().fold(Vec::new(), |mut v, p| {
+        if !v.contains(&p.method) {
+            v.push(p.method.clone());
+        }
+        v
+    });
+    let series = |f: &dyn Fn(&Point) -> (f64, f64)| -> Vec<Series> {
+        methods
+            .iter()
+            .map(|m| Series { name: m.clone(), points: points.iter().filter(|p| &p.method == m).map(f).collect() })
+            .collect()
+    };
+    let panels = [
+        Panel {
+            title: "novel-view PSNR vs seconds".into(),
+            series: series(&|p| (p.seconds, p.novel_psnr)),
+            log_y: false,
+        },
+        Panel {
+            title: "input-view PSNR vs seconds".into(),
+            series: series(&|p| (p.seconds, p.input_psnr)),
+            log_y: false,
+        },
+    ];
+    if let Some(dir) = a.out.parent() {
+        std::fs::create_dir_all(dir).ok();
+    }
+    let stem = a.out.display().to_string();
+    gdrf_core::io::save_png(&PathBuf::from(format!("{stem}.png")), &draw_panels(&panels, 2, 420, 280))?;
+    let mean_pose = |k: usize| {
+        if pose_errors.is_empty() {
+            None
+        } else {
+            Some(pose_errors.iter().map(|e| if k == 0 { e.0 } else { e.1 }).sum::<f64>() / pose_errors.len() as f64)
+        }
+    };
+    let json = serde_json::json!({
+        "generator": gen.display().to_string(),
+        "dataset": a.dataset.display().to_string(),
+        "images": a.images, "views": a.views, "steps": a.steps,
+        "resolution": a.resolution, "samples": a.samples,
+        "device": format!("{dev:?}"), "threads": threads,
+        "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
+        "points": points,
+    });
+    gdrf_core::checkpoint::write_atomic(
+        &PathBuf::from(format!("{stem}.json")),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )?;
+    let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM |\n|---|---|---|---|---|---|---|\n");
+    for p in points {
+        md += &format!(
+            "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} |\n",
+            p.method, p.steps, p.steps_run, p.seconds, p.input_psnr, p.input_ssim, p.novel_psnr, p.novel_ssim
+        );
+    }
+    gdrf_core::checkpoint::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
+    print!("{md}");
+    println!("wrote {stem}.json, {stem}.png, {stem}.md");
+    Ok(())
+}
