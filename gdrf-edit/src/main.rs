@@ -37,7 +37,7 @@ enum Command {
     Bench(bench::BenchArgs),
     /// The shape of one source with the appearance of another, at one or more views:
     /// frame-NNN.png per view and strip.png. A source is seed:N, a feature file
-    /// (.safetensors, from gdrf-invert or `features`) or a photo (once gdrf-invert lands).
+    /// (.safetensors, from gdrf-invert or `features`) or a photo (inverted on the fly).
     Swap(swap::SwapArgs),
     /// A swap matrix over several sources: row i has the shape of source i, column j the
     /// appearance of source j. Each row's shape side is computed once and re-shaded.
@@ -138,6 +138,8 @@ pub struct Model {
     pub device: tch::Device,
     /// The generator's identity, which feature files carry.
     pub id: String,
+    /// How photo sources are inverted.
+    pub photo: swap::PhotoSettings,
 }
 
 /// The generator of `checkpoint`, or a randomly initialised one (the release's
@@ -159,7 +161,14 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
         }
     };
     let id = gdrf_core::edit::generator_id(&vs, &generator);
-    Ok(Model { _vs: vs, generator, camera: header.camera.clone().unwrap_or_default(), device: dev, id })
+    Ok(Model {
+        _vs: vs,
+        generator,
+        camera: header.camera.clone().unwrap_or_default(),
+        device: dev,
+        id,
+        photo: Default::default(),
+    })
 }
 
 fn main() {

@@ -31,6 +31,17 @@ pub struct ModelArgs {
     /// camera stored with the checkpoint.
     #[arg(long, value_parser = ["chair", "car", "carla"])]
     camera: Option<String>,
+    /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults;
+    /// gdrf-invert writes a reusable feature file): the photo's pose as PITCH,YAW in degrees
+    /// (default: the initialiser's estimate, else the camera's mean pose).
+    #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
+    photo_pose: Option<String>,
+    /// The initialiser for photo sources (gdrf-invert train-init).
+    #[arg(long, value_name = "FILE")]
+    photo_init: Option<PathBuf>,
+    /// Optimisation steps for photo sources.
+    #[arg(long, default_value_t = gdrf_core::invert::InvertConfig::default().steps)]
+    photo_steps: usize,
 }
 
 #[derive(Args)]
@@ -207,11 +218,50 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     if let Some(name) = &m.camera {
         model.camera = gdrf_core::CameraConfig::preset(name)?;
     }
+    model.photo = PhotoSettings {
+        pose: m.photo_pose.as_deref().map(parse_pose).transpose()?,
+        init: m.photo_init.clone(),
+        cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..Default::default() },
+    };
+    model.photo.cfg.validate()?;
     Ok((model, threads))
 }
 
+/// How photo sources are inverted (see [`ModelArgs`]).
+#[derive(Default)]
+pub struct PhotoSettings {
+    pub pose: Option<(f64, f64)>,
+    pub init: Option<PathBuf>,
+    pub cfg: gdrf_core::invert::InvertConfig,
+}
+
+/// `PITCH,YAW` in degrees → radians.
+fn parse_pose(s: &str) -> Result<(f64, f64)> {
+    let v: Vec<f64> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    if v.len() != 2 || s.split(',').count() != 2 || v.iter().any(|x| !x.is_finite()) {
+        anyhow::bail!("--photo-pose '{s}': expected PITCH,YAW in degrees, e.g. 60,-30");
+    }
+    Ok((v[0].to_radians(), v[1].to_radians()))
+}
+
 pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
-    Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string())
+    match source {
+        Source::Image(p) => {
+            let ph = &model.photo;
+            eprintln!("{flag}: inverting {} ({} steps)", p.display(), ph.cfg.steps);
+            gdrf_core::invert::features_of_photo(
+                &model.generator,
+                &model.camera,
+                &model.id,
+                p,
+                ph.pose,
+                ph.init.as_deref(),
+                &ph.cfg,
+            )
+            .with_context(|| format!("{flag} {}", p.display()))
+        }
+        _ => Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string()),
+    }
 }
 
 /// A folder to write into: created when missing; one that holds files is refused unless

@@ -396,6 +396,46 @@ pub fn invert(
     Inverter::new(g, camera, photo, start, cfg, perceptual)?.run(progress)
 }
 
+/// A photo file as an editing source: loaded (centre-cropped, on white), inverted with `cfg`
+/// from the initialiser's start when `init` is given (else the mean code's), at `pose` when
+/// given (else the initialiser's, else the camera's mean pose), with the EfficientNet-Lite0
+/// perceptual distance when `cfg.perceptual_weight` is not 0. Returns the features and the
+/// pose used.
+pub fn features_of_photo(
+    g: &Generator,
+    camera: &CameraConfig,
+    generator_id: &str,
+    path: &std::path::Path,
+    pose: Option<(f64, f64)>,
+    init: Option<&std::path::Path>,
+    cfg: &InvertConfig,
+) -> Result<Features> {
+    let (_, device) = g.kind_device();
+    let photo = photo::load_photo(path, None, photo::Fit::Crop, cfg.resolution, device)?;
+    let init = init.map(|p| init::Initialiser::load(p, generator_id, device)).transpose()?;
+    let predicted = init.as_ref().map(|f| f.predict(&photo)).transpose()?;
+    let pose = pose.or(predicted.as_ref().map(|p| p.1)).unwrap_or((camera.v_mean, camera.h_mean));
+    let start = match predicted {
+        Some((w, _)) => Start::with_mean_appearance(g, w, pose, 10_000),
+        None => Start::mean(g, pose, 10_000),
+    };
+    let net;
+    let perceptual = if cfg.perceptual_weight > 0.0 {
+        let p = crate::eval::effnet::EfficientNetLite0::default_path();
+        net = crate::eval::effnet::EfficientNetLite0::load(&p, device).map_err(|e| {
+            Error::Invalid(format!("the inversion's perceptual term needs {} (scripts/setup.sh): {e}", p.display()))
+        })?;
+        let d = crate::eval::perceptual::EffnetPerceptual { net: &net, size: 224 };
+        Some(Perceptual {
+            name: crate::eval::perceptual::NAME.into(),
+            distance: Box::new(move |x, y| d.distance(x, y)),
+        })
+    } else {
+        None
+    };
+    Ok(invert(g, camera, &photo, &start, cfg, perceptual.as_ref(), &mut |_| {})?.features)
+}
+
 /// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.
 pub fn resize(img: &Tensor, res: i64) -> Tensor {
     let s = img.size();
