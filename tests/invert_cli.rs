@@ -1,0 +1,196 @@
+//! `gdrf-invert` from the command line: a run writes every output and its features reload
+//! in gdrf-edit's format; every kind of bad input is an error that names it and leaves
+//! nothing behind; the initialiser trains, is refused by another generator and starts an
+//! inversion.
+mod common;
+
+use common::{repo_root, TempDir};
+use gdrf_core::checkpoint::{load_generator, save_generator};
+use gdrf_core::data::synth::{encode_png, render_object, sample_object, Category, SynthOptions};
+use gdrf_core::edit::{generator_id, Features};
+use std::process::{Command, Output};
+use tch::{Device, Kind};
+
+fn gdrf_invert(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_gdrf-invert")).args(args).output().expect("gdrf-invert runs")
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = gdrf_invert(args);
+    assert!(o.status.success(), "gdrf-invert {args:?} failed:\n{}", text(&o));
+    text(&o)
+}
+
+fn fails(args: &[&str], wants: &[&str]) {
+    let o = gdrf_invert(args);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "gdrf-invert {args:?} should fail:\n{t}");
+    for w in wants {
+        assert!(t.contains(w), "gdrf-invert {args:?}: expected '{w}' in:\n{t}");
+    }
+}
+
+/// A procedural chair (a held-out kind of object: seed 123 456 is in no training set) at
+/// pitch 62.5°, yaw −8.2°, 32×32, written as PNG into `dir`.
+fn photo_in(dir: &TempDir) -> String {
+    let opts = SynthOptions { resolution: 32, supersample: 1, shadows: false, ..Default::default() };
+    let (shape, app) = sample_object(Category::Chairs, 123_456);
+    let r = render_object(&shape, &app, 62.5f64.to_radians(), -8.2f64.to_radians(), &opts).unwrap();
+    let rgba: Vec<u8> = r
+        .rgb
+        .chunks(3)
+        .flat_map(|c| [c[0], c[1], c[2]].map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).into_iter().chain([255]))
+        .collect();
+    let path = dir.path("chair.png");
+    std::fs::write(&path, encode_png(rgba, 32).unwrap()).unwrap();
+    path.display().to_string()
+}
+
+#[test]
+fn a_photo_inverts_and_bad_inputs_are_named() {
+    let tmp = TempDir::new("invert-cli");
+    let photo = photo_in(&tmp);
+    let out = tmp.path("out");
+    let o = out.to_str().unwrap();
+    let small = ["--steps", "3", "--resolution", "16", "--samples", "4", "--orbit", "2", "--quiet"];
+    let mut args = vec![photo.as_str(), "--pose", "62.5,-8.2", "--out", o];
+    args.extend(small);
+    let said = ok(&args);
+    assert!(said.contains("reconstruction PSNR"), "{said}");
+    for f in [
+        "features.safetensors",
+        "input.png",
+        "reconstruction.png",
+        "compare.png",
+        "orbit.gif",
+        "orbit/frame-001.png",
+        "loss.png",
+        "invert.json",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
+    assert_eq!(report["steps_run"], 3);
+    assert!(report["perceptual"].as_str().unwrap().contains("not LPIPS"));
+    let m = load_generator(&repo_root().join("models/chairs-tiny/generator.safetensors"), Device::Cpu, Kind::Float)
+        .unwrap();
+    let f =
+        Features::load(&out.join("features.safetensors"), &m.generator, &generator_id(&m.vs, &m.generator)).unwrap();
+    let p = f.pose.unwrap();
+    assert!((p.0.to_degrees() - 62.5).abs() < 1e-9 && (p.1.to_degrees() + 8.2).abs() < 1e-9);
+
+    // Bad inputs: each named, and the output folder is never created for them.
+    let fresh = tmp.path("never");
+    let n = fresh.to_str().unwrap();
+    std::fs::write(tmp.path("junk.png"), b"not a png").unwrap();
+    std::fs::write(tmp.path("empty.jpg"), b"").unwrap();
+    let junk = tmp.path("junk.png").display().to_string();
+    let empty = tmp.path("empty.jpg").display().to_string();
+    fails(&["missing.png", "--out", n], &["missing.png", "no such file"]);
+    fails(&[&junk, "--out", n], &["junk.png", "cannot decode"]);
+    fails(&[&empty, "--out", n], &["empty.jpg", "cannot decode"]);
+    fails(&[&photo, "--pose", "sixty", "--out", n], &["--pose", "PITCH,YAW"]);
+    fails(&[&photo, "--mask", &junk, "--out", n], &["mask", "junk.png"]);
+    fails(&[&photo, "--steps", "3", "--lr=-1", "--out", n], &["invert.lr"]);
+    fails(&[&photo, "--generator", &junk, "--out", n], &["--generator", "junk.png"]);
+    assert!(!fresh.exists(), "a failed run created its output folder");
+    // An output folder that holds files is refused without --force.
+    fails(&[&photo, "--out", o], &["--force"]);
+}
+
+#[test]
+fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
+    let tmp = TempDir::new("invert-cli-init");
+    let photo = photo_in(&tmp);
+    let init = tmp.path("init.safetensors");
+    let i = init.to_str().unwrap();
+    let said = ok(&[
+        "train-init",
+        "--out",
+        i,
+        "--count",
+        "24",
+        "--held-out",
+        "8",
+        "--steps",
+        "4",
+        "--eval-interval",
+        "2",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--batch-size",
+        "8",
+        "--quiet",
+    ]);
+    assert!(said.contains("held-out w_s MSE"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(tmp.path("init.safetensors.json")).unwrap()).unwrap();
+    assert_eq!(report["evaluations"].as_array().unwrap().len(), 2);
+    // Not overwritten without --resume; --resume continues to a longer run.
+    fails(&["train-init", "--out", i, "--count", "24", "--held-out", "8", "--steps", "6"], &["--resume"]);
+    ok(&[
+        "train-init",
+        "--out",
+        i,
+        "--count",
+        "24",
+        "--held-out",
+        "8",
+        "--steps",
+        "6",
+        "--eval-interval",
+        "2",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--batch-size",
+        "8",
+        "--resume",
+        "--quiet",
+    ]);
+
+    // Another generator (one weight changed) refuses this initialiser, naming both.
+    let mut m = load_generator(&repo_root().join("models/chairs-tiny/generator.safetensors"), Device::Cpu, Kind::Float)
+        .unwrap();
+    tch::no_grad(|| {
+        let mut w = m.vs.variables()["deform.head.bias"].shallow_clone();
+        let _ = w.g_add_scalar_(0.01);
+    });
+    let other = tmp.path("other.safetensors");
+    save_generator(&other, &m.vs, &m.header).unwrap();
+    let _ = &mut m;
+    let out = tmp.path("inv");
+    fails(
+        &[&photo, "--generator", other.to_str().unwrap(), "--init", i, "--out", out.to_str().unwrap()],
+        &["--init", "trained for generator"],
+    );
+    // With the right generator the initialiser gives the start and the pose.
+    let said = ok(&[
+        &photo,
+        "--init",
+        i,
+        "--steps",
+        "2",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--orbit",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(said.contains("2 steps"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
+    assert!(report["init"].as_str().unwrap().ends_with("init.safetensors"));
+}
