@@ -9,7 +9,9 @@
 #   4. editing with it: a swap matrix with kept shape sides, an orbit GIF of one shape with
 #      another's appearance, an appearance interpolation and a mesh with correspondence
 #      colours,
-#   5. its evaluation (Fréchet/kernel distances, topology coverage, disentanglement, pose
+#   5. a held-out photo of the dataset inverted into features (reconstruction, novel-view
+#      orbit, loss curve), and its appearance on another shape,
+#   6. its evaluation (Fréchet/kernel distances, topology coverage, disentanglement, pose
 #      consistency beside the real-data and random-generator ends) with the shipped probe.
 # DEMO_MINUTES sets the length of step 2 (default 3).
 set -euo pipefail
@@ -17,9 +19,10 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 scripts/setup.sh
 mkdir -p out
-cargo build --quiet -p gdrf-train -p gdrf-edit
+cargo build --quiet -p gdrf-train -p gdrf-edit -p gdrf-invert
 train=target/debug/gdrf-train
 edit=target/debug/gdrf-edit
+invert=target/debug/gdrf-invert
 
 "$train" --config configs/chairs-tiny.toml --run-dir out/demo-run --force --minutes "${DEMO_MINUTES:-3}"
 "$train" plot out/demo-run
@@ -40,8 +43,15 @@ model=models/chairs-tiny/generator.safetensors
   --steps 12 --out out/interp --force
 # A mesh of seed 1 coloured by template-space position (correspondences across shapes).
 "$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
+# A held-out chair of the dataset (never trained on) at its known pose, inverted into
+# out/invert/features.safetensors, then its appearance on seed 0's shape.
+"$invert" data/chairs-64/images/000020.png --pose 60.9,11.5 --steps 100 --resolution 32 --samples 12 \
+  --orbit 12 --out out/invert --force --quiet
+"$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
+  --orbit 12 --resolution 64 --steps 12 --out out/invert-swap --force
 # 200 images keep this to a few minutes; the figures in the README use --num 1000.
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
   --num 200 --out out/eval
 echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png); from the shipped model:"
-echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply and out/eval/"
+echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply, out/invert/,"
+echo "      out/invert-swap/ and out/eval/"
