@@ -37,7 +37,10 @@ pub struct BenchArgs {
     /// Novel views per object (yaw offsets spread over the turn, same pitch).
     #[arg(long, default_value_t = 4)]
     views: usize,
-    /// Steps of the full optimisation (the paper: 2 000).
+    /// Steps of the reference optimisation (the first method; the paper's 2 000).
+    #[arg(long, default_value_t = 2000)]
+    reference_steps: usize,
+    /// Steps of every other method.
     #[arg(long, default_value_t = 200)]
     steps: usize,
     /// Render side during the optimisation and for every comparison.
@@ -45,6 +48,12 @@ pub struct BenchArgs {
     resolution: i64,
     #[arg(long, default_value_t = 12)]
     samples: usize,
+    /// Adam's learning rate of the reference (the plain optimisation).
+    #[arg(long, default_value_t = 0.01)]
+    reference_lr: f64,
+    /// Adam's learning rate of every other method.
+    #[arg(long, default_value_t = InvertConfig::default().lr)]
+    lr: f64,
     /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
     #[arg(long, default_value = "docs/bench/invert")]
     out: PathBuf,
@@ -115,8 +124,8 @@ fn score(g: &Generator, cam: &CameraConfig, f: &Features, case: &Case, res: i64,
 pub fn bench(a: BenchArgs) -> Result<()> {
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
-    if a.images == 0 || a.views == 0 || a.steps == 0 {
-        bail!("--images, --views and --steps must be at least 1");
+    if a.images == 0 || a.views == 0 || a.steps == 0 || a.reference_steps == 0 {
+        bail!("--images, --views, --steps and --reference-steps must be at least 1");
     }
     let gen_path = a.generator.clone().unwrap_or_else(crate::default_generator);
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
@@ -146,23 +155,43 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .context("the effnet perceptual term needs weights/efficientnet-lite0.safetensors (run scripts/setup.sh)")?;
     let d = EffnetPerceptual { net: &effnet, size: 224 };
     let perc = Perceptual { name: perceptual::NAME.into(), distance: Box::new(move |x, y| d.distance(x, y)) };
-    let base = InvertConfig { steps: a.steps, resolution: res, num_steps: a.samples, ..Default::default() };
-    let checkpoints: Vec<usize> = {
+    let base = InvertConfig {
+        steps: a.steps,
+        resolution: res,
+        num_steps: a.samples,
+        lr: a.reference_lr,
+        coarse_fraction: 0.0,
+        patience: 0,
+        ray_fraction: 1.0,
+        ..Default::default()
+    };
+    let checkpoints = |steps: usize| -> Vec<usize> {
         let mut v: Vec<usize> =
-            [0.0, 0.05, 0.1, 0.25, 0.5, 1.0].iter().map(|f| (f * a.steps as f64).round() as usize).collect();
+            [0.0, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0].iter().map(|f| (f * steps as f64).round() as usize).collect();
         v.dedup();
         v
     };
-    // (name, uses the initialiser, config)
-    let mut methods: Vec<(String, bool, InvertConfig)> = vec![("mean code".into(), false, base.clone())];
-    if init.is_some() {
-        methods.push(("initialiser".into(), true, base.clone()));
-    }
+    // (name, uses the initialiser, config); the first is the reference.
     let with_init = init.is_some();
     let tag = if with_init { "initialiser" } else { "mean code" };
-    methods.push((format!("{tag}, rays 1/4"), with_init, InvertConfig { ray_fraction: 0.25, ..base.clone() }));
-    methods.push((format!("{tag}, coarse half"), with_init, InvertConfig { coarse_fraction: 0.5, ..base.clone() }));
-    methods.push((format!("{tag}, patience 20"), with_init, InvertConfig { patience: 20, ..base.clone() }));
+    let reference = InvertConfig { steps: a.reference_steps, ..base };
+    let mut methods: Vec<(String, bool, InvertConfig)> =
+        vec![(format!("{tag}, {} steps, lr {}, all rays", a.reference_steps, a.reference_lr), with_init, reference)];
+    // The defaults, and each speed option turned off or on against them.
+    let defaults =
+        InvertConfig { resolution: res, num_steps: a.samples, lr: a.lr, steps: a.steps, ..Default::default() };
+    let d = defaults.clone();
+    methods.push((format!("{tag}, defaults"), with_init, d.clone()));
+    if with_init {
+        methods.push(("mean code, defaults".to_string(), false, d.clone()));
+    }
+    methods.push((format!("{tag}, defaults, all rays"), with_init, InvertConfig { ray_fraction: 1.0, ..d.clone() }));
+    methods.push((
+        format!("{tag}, defaults, coarse half"),
+        with_init,
+        InvertConfig { coarse_fraction: 0.5, ..d.clone() },
+    ));
+    methods.push((format!("{tag}, defaults, patience 20"), with_init, InvertConfig { patience: 20, ..d }));
     eprintln!(
         "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),
@@ -175,6 +204,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let mut pose_errors = Vec::new();
     for (name, use_init, cfg) in &methods {
         // Sums over the cases, per checkpoint.
+        let checkpoints = checkpoints(cfg.steps);
         let mut sums = vec![[0.0f64; 6]; checkpoints.len()];
         for case in &cases {
             let t0 = std::time::Instant::now();
@@ -185,7 +215,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
                         let d = p.1 - case.pose.1;
                         d.sin().atan2(d.cos()).abs().to_degrees()
                     });
-                    if name == "initialiser" {
+                    if pose_errors.len() < cases.len() {
                         pose_errors.push(err);
                     }
                     Start::with_mean_appearance(g, w, case.pose, 10_000)
@@ -277,8 +307,8 @@ fn write_outputs(
     let json = serde_json::json!({
         "generator": gen.display().to_string(),
         "dataset": a.dataset.display().to_string(),
-        "images": a.images, "views": a.views, "steps": a.steps,
-        "resolution": a.resolution, "samples": a.samples,
+        "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
+        "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
         "device": format!("{dev:?}"), "threads": threads,
         "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
         "points": points,
@@ -293,6 +323,22 @@ fn write_outputs(
             "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} |\n",
             p.method, p.steps, p.steps_run, p.seconds, p.input_psnr, p.input_ssim, p.novel_psnr, p.novel_ssim
         );
+    }
+    // Against the reference (the first method): the novel-view PSNR gain of its last point
+    // over its start, and the first point of each method reaching 95 % of that gain.
+    let reference: Vec<&Point> = points.iter().filter(|p| p.method == methods[0]).collect();
+    let (r0, r1) = (reference[0], reference[reference.len() - 1]);
+    let gain = r1.novel_psnr - r0.novel_psnr;
+    md += &format!(
+        "\nReference: {}, novel-view PSNR {:.2} → {:.2} dB (gain {gain:.2} dB) in {:.1} s.\n\n| method | first point with ≥ 95 % of the gain | seconds | fraction of the reference's time |\n|---|---|---|---|\n",
+        methods[0], r0.novel_psnr, r1.novel_psnr, r1.seconds
+    );
+    for m in &methods {
+        let hit = points.iter().filter(|p| &p.method == m).find(|p| p.novel_psnr - r0.novel_psnr >= 0.95 * gain);
+        md += &match hit {
+            Some(p) => format!("| {m} | {} steps | {:.2} | {:.3} |\n", p.steps, p.seconds, p.seconds / r1.seconds),
+            None => format!("| {m} | not reached | — | — |\n"),
+        };
     }
     gdrf_core::checkpoint::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
     print!("{md}");

@@ -66,15 +66,15 @@ pub struct InvertConfig {
 impl Default for InvertConfig {
     fn default() -> Self {
         Self {
-            steps: 300,
-            lr: 0.01,
+            steps: 200,
+            lr: 0.03,
             resolution: 64,
             num_steps: 24,
             mse_weight: 1.0,
             perceptual_weight: 1.0,
             prior_shape: 0.01,
             prior_appearance: 0.01,
-            ray_fraction: 1.0,
+            ray_fraction: 0.25,
             coarse_fraction: 0.0,
             patience: 0,
             min_improvement: 1e-3,
