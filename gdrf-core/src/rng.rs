@@ -45,6 +45,7 @@ pub enum Purpose {
     /// The inversion initialiser's generated tuples and its batches.
     InitData = 24,
     InitBatches = 25,
+    InitWeights = 26,
 }
 
 /// A source of uniform and normal tensors.

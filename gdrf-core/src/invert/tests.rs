@@ -18,7 +18,15 @@ fn small() -> (nn::VarStore, Generator) {
 }
 
 fn cfg(steps: usize) -> InvertConfig {
-    InvertConfig { steps, resolution: 16, num_steps: 8, perceptual_weight: 0.0, lr: 0.02, ..Default::default() }
+    InvertConfig {
+        steps,
+        resolution: 16,
+        num_steps: 8,
+        perceptual_weight: 0.0,
+        lr: 0.02,
+        ray_fraction: 1.0,
+        ..Default::default()
+    }
 }
 
 /// The target: seed 5's features rendered at `pose` (same noise convention as step 0).
