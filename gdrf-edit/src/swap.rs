@@ -219,7 +219,7 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
         model.camera = gdrf_core::CameraConfig::preset(name)?;
     }
     model.photo = PhotoSettings {
-        pose: m.photo_pose.as_deref().map(parse_pose).transpose()?,
+        pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
         init: m.photo_init.clone(),
         cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..Default::default() },
     };
@@ -233,15 +233,6 @@ pub struct PhotoSettings {
     pub pose: Option<(f64, f64)>,
     pub init: Option<PathBuf>,
     pub cfg: gdrf_core::invert::InvertConfig,
-}
-
-/// `PITCH,YAW` in degrees → radians.
-fn parse_pose(s: &str) -> Result<(f64, f64)> {
-    let v: Vec<f64> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
-    if v.len() != 2 || s.split(',').count() != 2 || v.iter().any(|x| !x.is_finite()) {
-        anyhow::bail!("--photo-pose '{s}': expected PITCH,YAW in degrees, e.g. 60,-30");
-    }
-    Ok((v[0].to_radians(), v[1].to_radians()))
 }
 
 pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
@@ -527,7 +518,12 @@ mod tests {
     use gdrf_core::{CameraConfig, GeneratorConfig};
     use tch::{nn, Device};
 
+    /// Tests that build a generator from libtorch's global generator hold this, so that
+    /// parallel tests cannot interleave their draws and change each other's weights.
+    static GLOBAL_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
     fn small() -> (nn::VarStore, Generator) {
+        let _lock = GLOBAL_RNG.lock().unwrap_or_else(|e| e.into_inner());
         tch::manual_seed(5);
         let vs = nn::VarStore::new(Device::Cpu);
         let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };

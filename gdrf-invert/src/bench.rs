@@ -2,20 +2,18 @@
 //! procedural dataset, whose ground truth renders any object at any pose.
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::synth::{render_object, Metadata, Split};
 use gdrf_core::device;
-use gdrf_core::edit::{generator_id, latents, Features};
+use gdrf_core::edit::{generator_id, Features};
 use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::fidelity::{psnr, ssim};
 use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
 use gdrf_core::invert::init::Initialiser;
 use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{InvertConfig, Inverter, Perceptual, Start};
+use gdrf_core::invert::{render_views, InvertConfig, Inverter, Perceptual, Start};
 use gdrf_core::plot::{draw_panels, Panel, Series};
-use gdrf_core::render::{Noise, Renderer};
-use gdrf_core::{CameraConfig, Generator, RenderConfig};
+use gdrf_core::{CameraConfig, Generator};
 use serde::Serialize;
 use std::path::PathBuf;
 use tch::{Device, Kind, Tensor};
@@ -90,29 +88,14 @@ fn to_tensor(rgb: &[f32], res: i64) -> Tensor {
     Tensor::from_slice(rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0
 }
 
-fn render(g: &Generator, cam: &CameraConfig, f: &Features, poses: &[(f64, f64)], res: i64, n: usize) -> Result<Tensor> {
-    let rc = RenderConfig { num_steps: n, jitter: false, ..Default::default() };
-    let r = Renderer::new(g, cam, &rc)?;
-    let one = latents(g, f, f, None);
-    let k = poses.len() as i64;
-    let rep = |t: &Tensor| t.repeat([k, 1]);
-    let lat = gdrf_core::Latents {
-        shape: gdrf_core::nn::film::Film { gamma: rep(&one.shape.gamma), beta: rep(&one.shape.beta) },
-        appearance: gdrf_core::nn::film::Film { gamma: rep(&one.appearance.gamma), beta: rep(&one.appearance.beta) },
-    };
-    let dev = one.shape.gamma.device();
-    let p = Poses::from_angles(poses, Kind::Float, dev);
-    Ok(tch::no_grad(|| r.render_image(&lat, &p, res, &Noise::midpoints(k, res * res, n as i64, dev)))?.rgb)
-}
-
 fn mean(v: &Tensor) -> f64 {
     f64::try_from(v.mean(Kind::Double)).unwrap_or(f64::NAN)
 }
 
 /// Fidelity of `f` on `case` (input view and novel views).
 fn score(g: &Generator, cam: &CameraConfig, f: &Features, case: &Case, res: i64, n: usize) -> Result<[f64; 4]> {
-    let at_input = render(g, cam, f, &[case.pose], res, n)?;
-    let novel = render(g, cam, f, &case.novel_poses, res, n)?;
+    let at_input = render_views(g, cam, f, &[case.pose], res, n)?;
+    let novel = render_views(g, cam, f, &case.novel_poses, res, n)?;
     Ok([
         mean(&psnr(&at_input, &case.photo)?),
         mean(&ssim(&at_input, &case.photo)?),

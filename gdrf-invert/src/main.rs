@@ -4,20 +4,17 @@ mod bench;
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::device;
-use gdrf_core::edit::{generator_id, latents};
+use gdrf_core::edit::generator_id;
 use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::lpips::{Lpips, LpipsNet};
 use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
 use gdrf_core::invert::init::{self as init_stage, InitConfig, Initialiser};
 use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{invert, InvertConfig, Perceptual, Start, StepLog};
+use gdrf_core::invert::{invert, parse_pose_degrees, render_views, InvertConfig, Perceptual, Start, StepLog};
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
 use gdrf_core::plot::{draw_panels, Panel, Series};
-use gdrf_core::render::{Noise, Renderer};
-use gdrf_core::RenderConfig;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
@@ -200,16 +197,6 @@ pub(crate) fn default_generator() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/chairs-tiny/generator.safetensors")
 }
 
-/// `PITCH,YAW` in degrees → radians.
-fn parse_pose(s: &str) -> Result<(f64, f64)> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let nums: Vec<f64> = parts.iter().filter_map(|p| p.parse().ok()).collect();
-    if parts.len() != 2 || nums.len() != 2 || nums.iter().any(|v| !v.is_finite()) {
-        bail!("--pose '{s}': expected PITCH,YAW in degrees, e.g. --pose 60,-30");
-    }
-    Ok((nums[0].to_radians(), nums[1].to_radians()))
-}
-
 fn run(a: InvertArgs) -> Result<()> {
     let photo_path = a.photo.clone().expect("clap requires the photo");
     let threads = device::init_threads();
@@ -234,7 +221,7 @@ fn run(a: InvertArgs) -> Result<()> {
     if !(4..=1024).contains(&view_res) {
         bail!("--render-resolution {view_res}: expected 4 to 1024");
     }
-    let pose = a.pose.as_deref().map(parse_pose).transpose()?;
+    let pose = a.pose.as_deref().map(|p| parse_pose_degrees(p, "--pose")).transpose()?;
     let gen_path = a.generator.clone().unwrap_or_else(default_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
@@ -317,23 +304,9 @@ fn run(a: InvertArgs) -> Result<()> {
 
     // Outputs.
     inv.features.save(&a.out.join("features.safetensors"), &id)?;
-    let rc = RenderConfig { num_steps: a.samples.max(12), jitter: false, ..Default::default() };
-    let r = Renderer::new(g, &cam, &rc)?;
+    let view_samples = a.samples.max(12);
     let view = |f: &gdrf_core::edit::Features, poses: &[(f64, f64)]| -> Result<Tensor> {
-        let lat = latents(g, f, f, None);
-        let lat = gdrf_core::Latents {
-            shape: gdrf_core::nn::film::Film {
-                gamma: lat.shape.gamma.repeat([poses.len() as i64, 1]),
-                beta: lat.shape.beta.repeat([poses.len() as i64, 1]),
-            },
-            appearance: gdrf_core::nn::film::Film {
-                gamma: lat.appearance.gamma.repeat([poses.len() as i64, 1]),
-                beta: lat.appearance.beta.repeat([poses.len() as i64, 1]),
-            },
-        };
-        let p = Poses::from_angles(poses, Kind::Float, dev);
-        let noise = Noise::midpoints(poses.len() as i64, view_res * view_res, rc.num_steps as i64, dev);
-        Ok(tch::no_grad(|| r.render_image(&lat, &p, view_res, &noise))?.rgb)
+        Ok(render_views(g, &cam, f, poses, view_res, view_samples)?)
     };
     let recon = view(&inv.features, &[pose])?;
     let start_features = gdrf_core::edit::Features {

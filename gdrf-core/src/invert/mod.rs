@@ -436,6 +436,42 @@ pub fn features_of_photo(
     Ok(invert(g, camera, &photo, &start, cfg, perceptual.as_ref(), &mut |_| {})?.features)
 }
 
+/// A pose given as `PITCH,YAW` in degrees (pitch from +y, the command-line convention of
+/// every binary) → radians; `flag` names the option in the error.
+pub fn parse_pose_degrees(s: &str, flag: &str) -> Result<(f64, f64)> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let nums: Vec<f64> = parts.iter().filter_map(|p| p.parse().ok()).collect();
+    if parts.len() != 2 || nums.len() != 2 || nums.iter().any(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!("{flag} '{s}': expected PITCH,YAW in degrees, e.g. {flag} 60,-30")));
+    }
+    Ok((nums[0].to_radians(), nums[1].to_radians()))
+}
+
+/// The features `f` (shape and appearance) rendered at each of `poses` (radians), `(V, 3,
+/// res, res)` in [−1, 1], without gradients or random draws (no jitter, importance samples
+/// at mid-points), `n` + `n` samples per ray.
+pub fn render_views(
+    g: &Generator,
+    camera: &CameraConfig,
+    f: &Features,
+    poses: &[(f64, f64)],
+    res: i64,
+    n: usize,
+) -> Result<Tensor> {
+    let rc = RenderConfig { num_steps: n, jitter: false, ..Default::default() };
+    let r = Renderer::new(g, camera, &rc)?;
+    let one = crate::edit::latents(g, f, f, None);
+    let k = poses.len() as i64;
+    let rep = |t: &Tensor| t.repeat([k, 1]);
+    let lat = Latents {
+        shape: Film { gamma: rep(&one.shape.gamma), beta: rep(&one.shape.beta) },
+        appearance: Film { gamma: rep(&one.appearance.gamma), beta: rep(&one.appearance.beta) },
+    };
+    let (kind, device) = g.kind_device();
+    let p = Poses::from_angles(poses, kind, device);
+    Ok(tch::no_grad(|| r.render_image(&lat, &p, res, &Noise::midpoints(k, res * res, n as i64, device)))?.rgb)
+}
+
 /// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.
 pub fn resize(img: &Tensor, res: i64) -> Tensor {
     let s = img.size();

@@ -86,3 +86,13 @@ fn coarse_steps_patience_and_bad_settings() {
     let wrong = Start { w_s: Tensor::zeros([1, 3], (Kind::Float, Device::Cpu)), ..Start::mean(&g, (1.0, 0.0), 10) };
     assert!(invert(&g, &cam, &photo, &wrong, &cfg(1), None, &mut |_| {}).is_err());
 }
+
+#[test]
+fn poses_parse_in_degrees_and_bad_ones_are_named() {
+    let (p, y) = parse_pose_degrees(" 90, -45 ", "--pose").unwrap();
+    assert_eq!((p, y), (std::f64::consts::FRAC_PI_2, -std::f64::consts::FRAC_PI_4));
+    for bad in ["60", "60,x", "1,2,3", "nan,0", ""] {
+        let e = parse_pose_degrees(bad, "--photo-pose").unwrap_err().to_string();
+        assert!(e.contains("--photo-pose") && e.contains("PITCH,YAW"), "{bad}: {e}");
+    }
+}
