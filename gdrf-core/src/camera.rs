@@ -58,6 +58,12 @@ impl Poses {
         Tensor::cat(&[&self.pitch, &self.yaw], 1)
     }
 
+    /// The inverse of [`Self::stacked`]: poses from `(B, 2)` = `[pitch, yaw]` (the
+    /// datasets' real poses).
+    pub fn from_stacked(t: &Tensor) -> Self {
+        Self { pitch: t.narrow(1, 0, 1), yaw: t.narrow(1, 1, 1) }
+    }
+
     pub fn len(&self) -> i64 {
         self.pitch.size()[0]
     }

@@ -36,6 +36,20 @@ pub fn grid(images: &Tensor, cols: i64) -> Tensor {
 }
 
 /// Writes an 8-bit RGB image as PNG, atomically.
+/// An output folder to write into (`flag` names the option): created when missing; one
+/// that already holds files is refused unless `force`, so that no earlier output is mixed
+/// with or overwritten by a new one by accident.
+pub fn output_dir(dir: &Path, force: bool, flag: &str) -> Result<()> {
+    let io = |source| Error::Io { path: dir.to_path_buf(), source };
+    if dir.is_dir() && std::fs::read_dir(dir).map_err(io)?.next().is_some() && !force {
+        return Err(Error::Invalid(format!(
+            "{flag} {}: the folder already holds files; pass --force to write into it",
+            dir.display()
+        )));
+    }
+    std::fs::create_dir_all(dir).map_err(io)
+}
+
 pub fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
     let mut bytes = Vec::new();
     image::DynamicImage::ImageRgb8(img.clone())
@@ -88,6 +102,19 @@ pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn occupied_output_folders_need_force() {
+        let dir = std::env::temp_dir().join(format!("gdrf-io-out-{}", std::process::id()));
+        output_dir(&dir, false, "--out").unwrap();
+        assert!(dir.is_dir());
+        output_dir(&dir, false, "--out").unwrap(); // empty: fine
+        std::fs::write(dir.join("frame-000.png"), b"x").unwrap();
+        let e = output_dir(&dir, false, "--out").unwrap_err().to_string();
+        assert!(e.contains("--out") && e.contains("--force") && e.contains(&dir.display().to_string()), "{e}");
+        output_dir(&dir, true, "--out").unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
     use image::AnimationDecoder;
 
     #[test]

@@ -6,12 +6,10 @@ use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::synth::{render_object, Metadata, Split};
 use gdrf_core::device;
 use gdrf_core::edit::{generator_id, Features};
-use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::fidelity::{psnr, ssim};
-use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
 use gdrf_core::invert::init::Initialiser;
 use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{render_views, InvertConfig, Inverter, Perceptual, Start};
+use gdrf_core::invert::{load_effnet, render_views, InvertConfig, Inverter, Perceptual, Start};
 use gdrf_core::plot::{draw_panels, Panel, Series};
 use gdrf_core::{CameraConfig, Generator};
 use serde::Serialize;
@@ -134,10 +132,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             .collect::<Result<Vec<_>>>()?;
         cases.push(Case { photo, pose: (r.pitch, r.yaw), novel: Tensor::cat(&novel, 0).to_device(dev), novel_poses });
     }
-    let effnet = EfficientNetLite0::load(&EfficientNetLite0::default_path(), dev)
-        .context("the effnet perceptual term needs weights/efficientnet-lite0.safetensors (run scripts/setup.sh)")?;
-    let d = EffnetPerceptual { net: &effnet, size: 224 };
-    let perc = Perceptual { name: perceptual::NAME.into(), distance: Box::new(move |x, y| d.distance(x, y)) };
+    let effnet = load_effnet(dev)?;
+    let perc = Perceptual::effnet(&effnet);
     let base = InvertConfig {
         steps: a.steps,
         resolution: res,

@@ -7,12 +7,12 @@ use clap::Parser;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::device;
 use gdrf_core::edit::generator_id;
-use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::lpips::{Lpips, LpipsNet};
-use gdrf_core::eval::perceptual::{self, EffnetPerceptual};
 use gdrf_core::invert::init::{self as init_stage, InitConfig, Initialiser};
 use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{invert, parse_pose_degrees, render_views, InvertConfig, Perceptual, Start, StepLog};
+use gdrf_core::invert::{
+    invert, load_effnet, parse_pose_degrees, render_views, InvertConfig, Perceptual, Start, StepLog,
+};
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
 use gdrf_core::plot::{draw_panels, Panel, Series};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -234,7 +234,7 @@ fn run(a: InvertArgs) -> Result<()> {
         .as_deref()
         .map(|p| Initialiser::load(p, &id, dev).with_context(|| format!("loading --init {}", p.display())))
         .transpose()?;
-    output_dir(&a.out, a.force)?;
+    gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
 
     let predicted = init.as_ref().map(|f| f.predict(&photo)).transpose()?;
     if let Some((_, p)) = &predicted {
@@ -253,12 +253,8 @@ fn run(a: InvertArgs) -> Result<()> {
     let perc = match a.perceptual.as_str() {
         "none" => None,
         "effnet" => {
-            let path = EfficientNetLite0::default_path();
-            effnet = EfficientNetLite0::load(&path, dev).with_context(|| {
-                format!("the effnet perceptual term needs {} (run scripts/setup.sh)", path.display())
-            })?;
-            let d = EffnetPerceptual { net: &effnet, size: 224 };
-            Some(Perceptual { name: perceptual::NAME.to_string(), distance: Box::new(move |x, y| d.distance(x, y)) })
+            effnet = load_effnet(dev)?;
+            Some(Perceptual::effnet(&effnet))
         }
         name => {
             let net = if name == "lpips-vgg" { LpipsNet::Vgg16 } else { LpipsNet::Alex };
@@ -380,16 +376,6 @@ fn run(a: InvertArgs) -> Result<()> {
         a.out.display(),
         if a.orbit > 0 { ", orbit.gif" } else { "" }
     );
-    Ok(())
-}
-
-/// A folder to write into: created when missing; one that holds files is refused unless
-/// `force`.
-fn output_dir(dir: &Path, force: bool) -> Result<()> {
-    if dir.is_dir() && std::fs::read_dir(dir)?.next().is_some() && !force {
-        bail!("--out {}: the folder already holds files; pass --force to write into it", dir.display());
-    }
-    std::fs::create_dir_all(dir).with_context(|| format!("creating --out {}", dir.display()))?;
     Ok(())
 }
 

@@ -36,6 +36,29 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
 /// Decodes `path` and returns its pixels as `3 × res × res` bytes (channel-major, rows
 /// top to bottom), RGB composited on white.
 pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
+    let rgba = decode_rgba(path)?;
+    let (w, h) = (rgba.width() as usize, rgba.height() as usize);
+    // Composite on white in the image's own (sRGB) values, as PIL-prepared data does.
+    let side = w.min(h);
+    let (x0, y0) = ((w - side) / 2, (h - side) / 2);
+    let mut planes = vec![0f32; 3 * side * side];
+    for y in 0..side {
+        for x in 0..side {
+            let p = rgba.get_pixel((x0 + x) as u32, (y0 + y) as u32).0;
+            let a = p[3].clamp(0.0, 1.0);
+            for c in 0..3 {
+                planes[c * side * side + y * side + x] = p[c].clamp(0.0, 1.0) * a + (1.0 - a);
+            }
+        }
+    }
+    let resized = area_resize(&planes, 3, side, res);
+    Ok(resized.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect())
+}
+
+/// Decodes a PNG or JPEG file (grayscale, palette, 16-bit and alpha variants included) to
+/// float RGBA. An unreadable, empty, unrecognised, truncated (JPEG) or zero-sized image is
+/// an error naming the file and the reason.
+pub fn decode_rgba(path: &Path) -> Result<image::Rgba32FImage> {
     let data_err = |reason: String| Error::Data { path: path.to_path_buf(), reason };
     let bytes = std::fs::read(path).map_err(|e| data_err(format!("cannot read the file: {e}")))?;
     if bytes.is_empty() {
@@ -56,22 +79,7 @@ pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
     if w == 0 || h == 0 {
         return Err(data_err(format!("image has zero size ({w}×{h})")));
     }
-    let rgba = img.into_rgba32f();
-    // Composite on white in the image's own (sRGB) values, as PIL-prepared data does.
-    let side = w.min(h);
-    let (x0, y0) = ((w - side) / 2, (h - side) / 2);
-    let mut planes = vec![0f32; 3 * side * side];
-    for y in 0..side {
-        for x in 0..side {
-            let p = rgba.get_pixel((x0 + x) as u32, (y0 + y) as u32).0;
-            let a = p[3].clamp(0.0, 1.0);
-            for c in 0..3 {
-                planes[c * side * side + y * side + x] = p[c].clamp(0.0, 1.0) * a + (1.0 - a);
-            }
-        }
-    }
-    let resized = area_resize(&planes, 3, side, res);
-    Ok(resized.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect())
+    Ok(img.into_rgba32f())
 }
 
 /// A JPEG is complete when an end-of-image marker (FF D9) follows its last

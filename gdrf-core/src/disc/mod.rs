@@ -9,7 +9,7 @@ use crate::nn::mapping::leaky_relu;
 use crate::{Error, Result};
 use projected::{ProjectedConfig, ProjectedDiscriminator};
 use serde::{Deserialize, Serialize};
-use tch::{nn, Device, Tensor};
+use tch::{nn, Tensor};
 
 /// Channels of fromRGB[i] (the input of layers[i]) in the release.
 pub const CHANNELS: [i64; 9] = [16, 32, 64, 128, 256, 400, 400, 400, 400];
@@ -64,7 +64,6 @@ pub trait Judge {
     fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput>;
     /// Trained parameters a `size × size` input uses.
     fn used_parameters(&self, size: i64) -> Result<i64>;
-    fn device(&self) -> Device;
 }
 
 /// The configured discriminator, its variables under `vs`.
@@ -207,9 +206,6 @@ impl Judge for Discriminator {
     }
     fn used_parameters(&self, size: i64) -> Result<i64> {
         used_parameters(self, size)
-    }
-    fn device(&self) -> Device {
-        self.head.weight.device()
     }
 }
 

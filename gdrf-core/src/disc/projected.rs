@@ -27,7 +27,7 @@ use crate::nn::mapping::leaky_relu;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
-use tch::{nn, Device, Kind, Tensor};
+use tch::{nn, Kind, Tensor};
 
 /// The taps of [`EfficientNetLite0::forward`] used: strides 4, 8, 16 and 32.
 const TAPS: [usize; 4] = [1, 2, 3, 4];
@@ -261,15 +261,12 @@ impl Judge for ProjectedDiscriminator {
         let heads: i64 = self.heads.iter().map(|h| h.down.iter().map(sn).sum::<i64>() + sn(&h.out)).sum();
         Ok(heads + (self.aux_weight.numel() + self.aux_bias.numel()) as i64)
     }
-
-    fn device(&self) -> Device {
-        self.features.device()
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::Device;
 
     #[test]
     fn spectral_norm_converges_to_the_largest_singular_value() {

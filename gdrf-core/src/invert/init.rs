@@ -282,8 +282,8 @@ pub struct InitEval {
 }
 
 fn pose_terms(raw: &Tensor, poses: &Tensor) -> Tensor {
-    let (pitch, yaw) = (poses.narrow(1, 0, 1), poses.narrow(1, 1, 1));
-    let want = Tensor::cat(&[pitch, yaw.cos(), yaw.sin()], 1);
+    let p = Poses::from_stacked(poses);
+    let want = Tensor::cat(&[p.pitch, p.yaw.cos(), p.yaw.sin()], 1);
     (raw - want).square().sum_dim_intlist(1, false, Kind::Float).mean(Kind::Float)
 }
 
@@ -376,8 +376,7 @@ pub fn train(
         let mut loss = (&w - tuples.w_s.index_select(0, &idx)).square().mean(Kind::Float)
             + pose_terms(&p, &tuples.poses.index_select(0, &idx)) * cfg.pose_weight;
         if let Some(small) = &images_small {
-            let poses = tuples.poses.index_select(0, &idx);
-            let poses = Poses { pitch: poses.narrow(1, 0, 1), yaw: poses.narrow(1, 1, 1) };
+            let poses = Poses::from_stacked(&tuples.poses.index_select(0, &idx));
             let lat = Latents {
                 shape: g.shape_from_w(&w, None),
                 appearance: Film::from_raw(&tuples.appearance_raw.index_select(0, &idx)),

@@ -25,13 +25,15 @@ pub mod photo;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::edit::Features;
+use crate::eval::effnet::EfficientNetLite0;
+use crate::eval::perceptual::{self, EffnetPerceptual};
 use crate::field::generator::Generator;
 use crate::nn::film::Film;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{Error, Latents, Result};
 use serde::{Deserialize, Serialize};
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 /// Settings of the optimisation (stage 2).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,6 +139,25 @@ pub struct Perceptual<'a> {
     pub distance: Distance<'a>,
 }
 
+impl<'a> Perceptual<'a> {
+    /// The offline default: the EfficientNet-Lite0 distance at 224² (LPIPS-style, not LPIPS).
+    pub fn effnet(net: &'a EfficientNetLite0) -> Self {
+        let d = EffnetPerceptual { net, size: 224 };
+        Self { name: perceptual::NAME.into(), distance: Box::new(move |x, y| d.distance(x, y)) }
+    }
+}
+
+/// EfficientNet-Lite0 from the project's weights file, with an error that says how to get it.
+pub fn load_effnet(device: Device) -> Result<EfficientNetLite0> {
+    let p = EfficientNetLite0::default_path();
+    EfficientNetLite0::load(&p, device).map_err(|e| {
+        Error::Invalid(format!(
+            "the inversion's perceptual term needs EfficientNet-Lite0's weights at {} (run scripts/setup.sh): {e}",
+            p.display()
+        ))
+    })
+}
+
 /// Where the optimisation starts.
 #[derive(Debug)]
 pub struct Start {
@@ -149,18 +170,25 @@ pub struct Start {
 }
 
 impl Start {
+    /// `n` fixed random codes `(n, latent)` of stream `seed` (the same every call). Shape
+    /// and appearance use streams 0 and 1, as [`Generator::truncation`] does for its means.
+    fn codes(g: &Generator, n: i64, seed: u64) -> Tensor {
+        let (kind, device) = g.kind_device();
+        StepRng::new(seed, 0, Purpose::Truncation, kind, device).normal(&[n, g.cfg.latent_dim as i64])
+    }
+
     /// The paper's appearance start: the mean raw output over `n` random codes (10 000 in
     /// the paper); `w_s` as given (the initialiser's, or the mean shape feature).
     pub fn with_mean_appearance(g: &Generator, w_s: Tensor, pose: (f64, f64), n: i64) -> Self {
-        let t = g.truncation(1.0, n, 0);
-        Self { w_s, appearance_raw: t.appearance_mean, pose }
+        let z = Self::codes(g, n, 1);
+        let appearance_raw = tch::no_grad(|| g.appearance_raw(&z).mean_dim(0, true, z.kind()));
+        Self { w_s, appearance_raw, pose }
     }
 
     /// The mean-code start: the mean w_s and the mean appearance over `n` random codes.
     pub fn mean(g: &Generator, pose: (f64, f64), n: i64) -> Self {
-        let (kind, device) = g.kind_device();
-        let z = StepRng::new(0, 0, Purpose::Truncation, kind, device).normal(&[n, g.cfg.latent_dim as i64]);
-        let w_s = tch::no_grad(|| g.shape_w(&z).mean_dim(0, true, kind));
+        let z = Self::codes(g, n, 0);
+        let w_s = tch::no_grad(|| g.shape_w(&z).mean_dim(0, true, z.kind()));
         Self::with_mean_appearance(g, w_s, pose, n)
     }
 }
@@ -421,15 +449,8 @@ pub fn features_of_photo(
     };
     let net;
     let perceptual = if cfg.perceptual_weight > 0.0 {
-        let p = crate::eval::effnet::EfficientNetLite0::default_path();
-        net = crate::eval::effnet::EfficientNetLite0::load(&p, device).map_err(|e| {
-            Error::Invalid(format!("the inversion's perceptual term needs {} (scripts/setup.sh): {e}", p.display()))
-        })?;
-        let d = crate::eval::perceptual::EffnetPerceptual { net: &net, size: 224 };
-        Some(Perceptual {
-            name: crate::eval::perceptual::NAME.into(),
-            distance: Box::new(move |x, y| d.distance(x, y)),
-        })
+        net = load_effnet(device)?;
+        Some(Perceptual::effnet(&net))
     } else {
         None
     };

@@ -1,18 +1,19 @@
 //! Photos as they come, turned into the square `(1, 3, R, R)` images in [−1, 1] that the
-//! inversion compares renders with.
+//! inversion compares renders with, prepared as the dataset loader prepares training images
+//! ([`crate::data::folder`]).
 //!
-//! - **Formats**: whatever the `image` crate decodes with the project's features (PNG,
-//!   JPEG). Grayscale, 16-bit and palette images are converted through 32-bit float RGBA,
-//!   so 16-bit precision is kept until the final resize.
+//! - **Formats**: PNG and JPEG, decoded by [`folder::decode_rgba`] (grayscale, 16-bit and
+//!   palette images through float RGBA; empty, unrecognised, truncated or zero-sized files
+//!   are errors).
 //! - **Transparency**: RGBA is composited on white (the renders' background).
 //! - **`mask`**: a grayscale image of the photo's size; white keeps a pixel, black turns it
 //!   into background (white), grey blends.
-//! - **Non-square photos**: [`Fit::Crop`] (default) keeps the centred square of the shorter
-//!   side; [`Fit::Pad`] pads the shorter side with white to a square, keeping everything.
-//! - **Resizing**: to `R × R` with a triangle (bilinear) filter over the source pixels
-//!   (image's `resize`, which averages when shrinking).
+//! - **Non-square photos**: [`Fit::Crop`] (default, as the loader) keeps the centred square
+//!   of the shorter side; [`Fit::Pad`] pads the shorter side with white to a square.
+//! - **Resizing**: to `R × R` with the loader's area filter ([`folder::area_resize`]).
+use crate::data::folder;
 use crate::{Error, Result};
-use image::{imageops, DynamicImage, Rgba32FImage};
+use image::{imageops, Rgba32FImage};
 use std::path::Path;
 use tch::{Device, Kind, Tensor};
 
@@ -37,26 +38,12 @@ impl std::str::FromStr for Fit {
     }
 }
 
-fn open(path: &Path, what: &str) -> Result<DynamicImage> {
+/// [`folder::decode_rgba`], with a plain message for a missing file; `what` names the input.
+fn open(path: &Path, what: &str) -> Result<Rgba32FImage> {
     if !path.is_file() {
         return Err(Error::Invalid(format!("{what} {}: no such file", path.display())));
     }
-    let img = image::ImageReader::open(path)
-        .and_then(|r| r.with_guessed_format())
-        .map_err(|e| Error::Invalid(format!("{what} {}: cannot open it ({e})", path.display())))?
-        .decode()
-        .map_err(|e| {
-            Error::Invalid(format!("{what} {}: cannot decode it ({e}); expected a PNG or JPEG", path.display()))
-        })?;
-    if img.width() == 0 || img.height() == 0 {
-        return Err(Error::Invalid(format!(
-            "{what} {}: the image is empty ({}×{})",
-            path.display(),
-            img.width(),
-            img.height()
-        )));
-    }
-    Ok(img)
+    folder::decode_rgba(path).map_err(|e| Error::Invalid(format!("{what} {e}")))
 }
 
 /// Loads `path` as a `(1, 3, res, res)` float32 image in [−1, 1] on `device` (see the
@@ -65,9 +52,9 @@ pub fn load_photo(path: &Path, mask: Option<&Path>, fit: Fit, res: i64, device: 
     if !(2..=4096).contains(&res) {
         return Err(Error::Invalid(format!("photo resolution {res} is out of range, expected 2 to 4096")));
     }
-    let mut rgba = open(path, "photo")?.to_rgba32f();
+    let mut rgba = open(path, "photo")?;
     if let Some(mask_path) = mask {
-        let m = open(mask_path, "mask")?.to_luma32f();
+        let m = image::DynamicImage::ImageRgba32F(open(mask_path, "mask")?).to_luma32f();
         if m.dimensions() != rgba.dimensions() {
             return Err(Error::Invalid(format!(
                 "mask {} is {}×{} but the photo is {}×{}; expected the same size",
@@ -91,20 +78,16 @@ pub fn load_photo(path: &Path, mask: Option<&Path>, fit: Fit, res: i64, device: 
         p.0[3] = 1.0;
     }
     let square = squared(&rgba, fit);
-    let resized = if square.width() as i64 == res {
-        square
-    } else {
-        imageops::resize(&square, res as u32, res as u32, imageops::FilterType::Triangle)
-    };
-    let data: Vec<f32> = resized.pixels().flat_map(|p| [p.0[0], p.0[1], p.0[2]]).collect();
-    Ok(Tensor::from_slice(&data)
-        .view([res, res, 3])
-        .permute([2, 0, 1])
-        .unsqueeze(0)
-        .to_kind(Kind::Float)
-        .to_device(device)
-        * 2.0
-        - 1.0)
+    let side = square.width() as usize;
+    // Channel-major planes, the loader's layout for its area filter.
+    let mut planes = vec![0f32; 3 * side * side];
+    for (i, p) in square.pixels().enumerate() {
+        for c in 0..3 {
+            planes[c * side * side + i] = p.0[c];
+        }
+    }
+    let resized = folder::area_resize(&planes, 3, side, res as usize);
+    Ok(Tensor::from_slice(&resized).view([1, 3, res, res]).to_kind(Kind::Float).to_device(device) * 2.0 - 1.0)
 }
 
 fn squared(img: &Rgba32FImage, fit: Fit) -> Rgba32FImage {
@@ -193,11 +176,16 @@ mod tests {
         std::fs::write(d.join("junk.png"), b"not an image").unwrap();
         std::fs::write(d.join("empty.png"), b"").unwrap();
         RgbImage::new(4, 4).save(d.join("ok.png")).unwrap();
+        // A JPEG cut before its end-of-image marker (the decoder would fill it with grey).
+        RgbImage::from_pixel(16, 16, Rgb([200, 10, 10])).save(d.join("whole.jpg")).unwrap();
+        let jpeg = std::fs::read(d.join("whole.jpg")).unwrap();
+        std::fs::write(d.join("cut.jpg"), &jpeg[..jpeg.len() - 2]).unwrap();
         RgbImage::new(3, 4).save(d.join("small-mask.png")).unwrap();
         let cases = [
             (d.join("missing.png"), None, "no such file"),
-            (d.join("junk.png"), None, "cannot decode"),
-            (d.join("empty.png"), None, "cannot decode"),
+            (d.join("junk.png"), None, "not a PNG or JPEG"),
+            (d.join("empty.png"), None, "empty file"),
+            (d.join("cut.jpg"), None, "truncated JPEG"),
             (d.join("ok.png"), Some(d.join("small-mask.png")), "same size"),
         ];
         for (p, m, want) in cases {

@@ -467,7 +467,8 @@ impl Trainer {
     /// The coverage term (see [`crate::loss::LossConfig::coverage_weight`]): picks, for each
     /// real image `(B, 3, S, S)` seen from `real_poses: (B, 2)`, the nearest of
     /// `coverage_candidates` codes at low resolution, renders it at the real pose with
-    /// gradients, and accumulates the weighted MSE's gradient into G. Returns the MSE.
+    /// gradients (in the stage's `batch_split` chunks, as the adversarial pass), and
+    /// accumulates the weighted MSE's gradient into G. Returns the MSE.
     fn coverage_gradients(
         &mut self,
         stage: &Stage,
@@ -481,17 +482,14 @@ impl Trainer {
         let small = cfg.coverage_resolution.min(res);
         let latent = self.cfg.generator.latent_dim as i64;
         let z = self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]);
-        let poses = crate::camera::Poses {
-            pitch: real_poses.narrow(1, 0, 1).repeat_interleave_self_int(k, 0, None),
-            yaw: real_poses.narrow(1, 1, 1).repeat_interleave_self_int(k, 0, None),
-        };
-        let mut rc = self.cfg.render_config(step);
-        rc.num_steps = stage.num_steps;
-        rc.jitter = false;
-        let renderer = self.live_renderer(&rc)?;
+        let poses = Poses::from_stacked(&real_poses.repeat_interleave_self_int(k, 0, None));
+        let rc = self.cfg.render_config(step);
+        // The candidates, without gradients or random draws (no jitter, mid-point importance
+        // samples).
+        let rc_candidates = crate::RenderConfig { jitter: false, ..rc.clone() };
         let gen = &self.generator;
-        // The candidates, without gradients and with fixed mid-interval importance samples.
         let candidates = tch::no_grad(|| {
+            let renderer = self.live_renderer(&rc_candidates)?;
             let lat = gen.latents(&z, &z, None);
             let noise = Noise::midpoints(b * k, small * small, stage.num_steps as i64, z.device());
             renderer.render_image(&lat, &poses, small, &noise)
@@ -501,22 +499,27 @@ impl Trainer {
         let dist = (candidates - target).square().mean_dim([1i64, 2, 3].as_slice(), false, Kind::Float).view([b, k]);
         let best = dist.argmin(1, false) + Tensor::arange(b, (Kind::Int64, dist.device())) * k;
         let z_best = z.index_select(0, &best);
-        let poses = crate::camera::Poses {
-            pitch: real_poses.narrow(1, 0, 1).shallow_clone(),
-            yaw: real_poses.narrow(1, 1, 1).shallow_clone(),
-        };
+        let poses = Poses::from_stacked(real_poses);
         let shape = [b, res * res, stage.num_steps as i64];
         let noise = Noise {
             jitter: Some(self.rng(step, Purpose::CoverageJitter).uniform(&shape)),
             importance: Some(self.rng(step, Purpose::CoverageImportance).uniform(&shape)),
         };
-        let rc = self.cfg.render_config(step);
         let renderer = self.live_renderer(&rc)?;
-        let lat = self.generator.latents(&z_best, &z_best, None);
-        let (img, _) = renderer.render_regions(&lat, &poses, res, 1, &noise)?;
-        let mse = (img - real).square().mean(Kind::Float);
-        (&mse * self.cfg.loss.coverage_weight).backward();
-        Ok(mse.detach())
+        let split = stage.batch_split;
+        let chunk = b / split;
+        let mut mse = 0.0;
+        for c in 0..split {
+            let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
+            let noise = Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
+            let zc = sl(&z_best);
+            let lat = self.generator.latents(&zc, &zc, None);
+            let (img, _) = renderer.render_regions(&lat, &poses.narrow(c * chunk, chunk), res, 1, &noise)?;
+            let m = (img - sl(real)).square().mean(Kind::Float);
+            (&m * (cfg.coverage_weight / split as f64)).backward();
+            mse += m.double_value(&[]) / split as f64;
+        }
+        Ok(Tensor::from(mse))
     }
 
     /// Computes the generator's gradients of the step about to run and leaves them in
