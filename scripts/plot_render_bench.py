@@ -31,9 +31,10 @@ def main():
     cols = len({k[1] for k in panels})
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.0 * nrows), dpi=110, squeeze=False)
-    families = ["reference", "density-first", "early-termination", "skip-empty", "grid", "grid+density-first",
-                "grid+skip-empty", "grid+skip-empty+density-first"]
-    markers = dict(zip(families, "osv<D^>P"))
+    # Families in the benchmark's order (the configuration's name before " N=").
+    families = list(dict.fromkeys(r["config"].split(" N=")[0] for r in rows))
+    shapes = "osv<D^>Px*hH8p+d|_"
+    markers = {fam: shapes[i % len(shapes)] for i, fam in enumerate(families)}
     for ax, (scene, res) in zip(axes.flat, panels):
         sel = [r for r in rows if r["scene"] == scene and r["resolution"] == res]
         pts = []

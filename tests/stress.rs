@@ -1,7 +1,7 @@
 //! Numerical stress suite: extreme densities, degenerate rays and weights, the exact
 //! initial state of the regularisers, saturated discriminators, wrap-around poses, camera
-//! poles, extreme fields of view and SIREN inputs, float32 against float64, and
-//! finite-difference gradient checks of every regulariser.
+//! poles, extreme fields of view and SIREN inputs, sampling only occupied bins, float32
+//! against float64, and finite-difference gradient checks of every regulariser.
 mod common;
 
 use gdrf_core::camera::{cam2world_rotation, pixel_directions, Poses, Rays};
@@ -12,7 +12,7 @@ use gdrf_core::loss::{gan, LossConfig, Schedule};
 use gdrf_core::nn::film::FilmLayer;
 use gdrf_core::nn::siren::SineLayer;
 use gdrf_core::nn::WeightInit;
-use gdrf_core::render::samplers::{importance_depths, sample_pdf};
+use gdrf_core::render::samplers::{importance_depths, sample_pdf, OccupiedLength};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
 use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::{CameraConfig, GeneratorConfig, Latents, RenderConfig};
@@ -138,6 +138,32 @@ fn renderer_merges_into_sorted_samples_at_every_pose() {
     assert!(finite(&out.pixel) && finite(&out.depth) && finite(&out.z));
     let dz = out.z.narrow(2, 1, 15) - out.z.narrow(2, 0, 15);
     assert!(min(&dz) >= 0.0);
+}
+
+/// Sampling only occupied bins: one occupied bin, alternating bins and a full ray, with
+/// densities from −inf to +inf, give sorted in-range depths and finite weights; a fully
+/// occupied ray integrates as the plain one.
+#[test]
+fn occupied_length_sampling_with_degenerate_occupancy_and_densities() {
+    let opts = (Kind::Float, CPU);
+    let m = 16;
+    let occ = Tensor::zeros([1, 3, m], opts);
+    let _ = occ.get(0).get(0).narrow(0, 7, 1).fill_(1.0);
+    let _ = occ.get(0).get(1).slice(0, 0, m, 2).fill_(1.0);
+    let _ = occ.get(0).get(2).fill_(1.0);
+    let o = OccupiedLength::new(&occ, (0.6, 1.4));
+    let u = Tensor::rand([1, 3, 12], opts);
+    let z = o.stratified(12, Some(&u));
+    assert!(finite(&z) && min(&z) >= 0.6 - 1e-6 && max(&z) <= 1.4 + 1e-6, "{z}");
+    assert!(min(&(z.narrow(2, 1, 11) - z.narrow(2, 0, 11))) >= 0.0);
+    let sigma = Tensor::linspace(-1e4, 1e4, 12, opts).view([1, 1, 12, 1]).repeat([1, 3, 1, 1]);
+    let _ = sigma.get(0).get(0).narrow(0, 0, 3).fill_(f64::INFINITY);
+    let _ = sigma.get(0).get(1).narrow(0, 3, 3).fill_(f64::NEG_INFINITY);
+    let scaled = o.absorb_only_where_occupied(&sigma, &z);
+    let w = gdrf_core::render::weights_from_density(&scaled, &z.unsqueeze(-1), 1e10);
+    assert!(finite(&w) && min(&w) >= 0.0 && max(&w.sum_dim_intlist(2, false, Kind::Float)) <= 1.0 + 1e-5, "{w}");
+    // The full ray has no empty bin: every density is kept.
+    assert!(bool::try_from(scaled.get(0).get(2).eq_tensor(&sigma.get(0).get(2)).all()).unwrap());
 }
 
 #[test]

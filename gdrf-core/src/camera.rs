@@ -191,6 +191,12 @@ pub struct Rays {
     /// `(B, R, 2)` [near, far] of each ray's samples; `None`: the camera's ray range.
     /// Rays with bounds also end on one sample at the camera's far end (see the renderer).
     pub bounds: Option<Tensor>,
+    /// `(B, R, M)`: 1 where bin j of M equal bins of the camera's ray range may hold
+    /// density, 0 where it is empty (an occupancy grid's promise). Samples are placed in
+    /// occupied bins only, and empty bins count as empty space when integrating (see
+    /// [`crate::render::samplers::OccupiedLength`]). Such rays also end on one sample at
+    /// the camera's far end.
+    pub occupied: Option<Tensor>,
 }
 
 impl Rays {
@@ -206,7 +212,7 @@ impl Rays {
         let r = dirs_cam.size()[0];
         let dirs = dirs_cam.matmul(&rot.transpose(1, 2)); // (B, R, 3)
         let origins = origin.unsqueeze(1).expand([-1, r, 3], false);
-        Self { origins, dirs, bounds: None }
+        Self { origins, dirs, bounds: None, occupied: None }
     }
 
     /// Rays from camera-to-world matrices `(B, 4, 4)` (user-given cameras).
@@ -238,12 +244,18 @@ impl Rays {
         Self { bounds: Some(bounds), ..self }
     }
 
+    /// The same rays sampled only in their occupied bins `occupied: (B, R, M)`.
+    pub fn with_occupied(self, occupied: Tensor) -> Self {
+        Self { occupied: Some(occupied), ..self }
+    }
+
     /// Rays `[start, start+len)` of every image.
     pub fn narrow(&self, start: i64, len: i64) -> Self {
         Self {
             origins: self.origins.narrow(1, start, len),
             dirs: self.dirs.narrow(1, start, len),
             bounds: self.bounds.as_ref().map(|b| b.narrow(1, start, len)),
+            occupied: self.occupied.as_ref().map(|o| o.narrow(1, start, len)),
         }
     }
 
@@ -253,6 +265,7 @@ impl Rays {
             origins: self.origins.narrow(0, start, len),
             dirs: self.dirs.narrow(0, start, len),
             bounds: self.bounds.as_ref().map(|b| b.narrow(0, start, len)),
+            occupied: self.occupied.as_ref().map(|o| o.narrow(0, start, len)),
         }
     }
 
@@ -262,6 +275,7 @@ impl Rays {
             origins: self.origins.index_select(1, idx),
             dirs: self.dirs.index_select(1, idx),
             bounds: self.bounds.as_ref().map(|b| b.index_select(1, idx)),
+            occupied: self.occupied.as_ref().map(|o| o.index_select(1, idx)),
         }
     }
 

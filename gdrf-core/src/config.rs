@@ -192,6 +192,14 @@ pub struct RenderConfig {
     /// no importance samples (nothing there for them to resolve; their integration is the
     /// coarse one). 0 = off: every ray gets N.
     pub importance_skip: f64,
+    /// Inference only: rays whose coarse weights inside the ray lie, to at least this
+    /// fraction, within three neighbouring coarse intervals get one importance sample in
+    /// `importance_stride` (their pdf is a narrow peak: a few samples resolve it). The
+    /// samples dropped are copies of the kept ones at zero distance, which add no light.
+    /// 0 = off.
+    pub importance_concentration: f64,
+    /// Of the importance samples of a concentrated ray, one in this many is evaluated.
+    pub importance_stride: usize,
 }
 
 impl Default for RenderConfig {
@@ -209,6 +217,8 @@ impl Default for RenderConfig {
             shade_min_weight: 0.0,
             termination: 0.0,
             importance_skip: 0.0,
+            importance_concentration: 0.0,
+            importance_stride: 4,
         }
     }
 }
@@ -217,7 +227,10 @@ impl RenderConfig {
     /// Whether inference renders skip queries (density-first shading, early termination or
     /// skipped importance samples): they then take the staged path.
     pub fn skips_samples(&self) -> bool {
-        self.shade_min_weight > 0.0 || self.termination > 0.0 || self.importance_skip > 0.0
+        self.shade_min_weight > 0.0
+            || self.termination > 0.0
+            || self.importance_skip > 0.0
+            || self.importance_concentration > 0.0
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -244,6 +257,15 @@ impl RenderConfig {
                 "render.importance_skip is {}, expected a weight in [0, 1) (0 = off)",
                 self.importance_skip
             )));
+        }
+        if !(self.importance_concentration >= 0.0 && self.importance_concentration <= 1.0) {
+            return Err(Error::Config(format!(
+                "render.importance_concentration is {}, expected a fraction in [0, 1] (0 = off)",
+                self.importance_concentration
+            )));
+        }
+        if self.importance_stride < 1 {
+            return Err(Error::Config("render.importance_stride must be at least 1".into()));
         }
         if !(self.termination >= 0.0 && self.termination < 1.0) {
             return Err(Error::Config(format!(

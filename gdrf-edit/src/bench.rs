@@ -7,6 +7,7 @@ use gdrf_core::bench::{median, peak_rss_mb, run_reference, run_script};
 use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::{load_generator, write_atomic};
 use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
+use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::field::RadianceField;
 use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
@@ -40,6 +41,10 @@ pub struct BenchArgs {
     /// (N stratified + N importance, no jitter).
     #[arg(long, default_value_t = 256)]
     reference_steps: usize,
+    /// Run only the configurations whose name contains one of these (e.g. `grid,thin`);
+    /// the release's sampler always runs, as the baseline of the speed-ups.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
     /// Skip the PyTorch reference (it needs the project's Python: scripts/setup.sh).
     #[arg(long)]
     no_pytorch: bool,
@@ -58,7 +63,11 @@ struct Setting {
     min_weight: f64,
     termination: f64,
     importance_skip: f64,
+    /// Concentration at which importance samples are thinned (0 = off), and the stride.
+    thin: (f64, usize),
     grid: Option<GridConfig>,
+    /// The networks' hidden layers in bfloat16 (integration stays float32); the model only.
+    bf16: bool,
 }
 
 impl Setting {
@@ -70,6 +79,8 @@ impl Setting {
             shade_min_weight: self.min_weight,
             termination: self.termination,
             importance_skip: self.importance_skip,
+            importance_concentration: self.thin.0,
+            importance_stride: self.thin.1,
             ..Default::default()
         }
     }
@@ -93,7 +104,28 @@ fn settings(res: i64) -> Vec<Setting> {
         min_weight,
         termination,
         importance_skip,
+        thin: (0.0, 1),
         grid: grid.then(GridConfig::default),
+        bf16: false,
+    };
+    let bf16 = |mut s: Setting| {
+        s.name = s.name.replacen(' ', "+bf16 ", 1);
+        s.bf16 = true;
+        s
+    };
+    // A grid of another resolution, sampling the first-to-last interval or (cells) only
+    // the occupied cells.
+    let fine = |mut s: Setting, resolution: i64, cells_only: bool| {
+        let family = if cells_only { "cells" } else { "grid" };
+        s.name = s.name.replacen("grid", &format!("{family}{resolution}"), 1);
+        s.grid = Some(GridConfig { cells_only, resolution, ..GridConfig::default() });
+        s
+    };
+    let cells = |s: Setting, resolution: i64| fine(s, resolution, true);
+    let thin = |mut s: Setting, concentration: f64, stride: usize| {
+        s.name = format!("{}+thin/{stride}@{concentration} N={}", s.name.split(' ').next().unwrap_or(""), s.steps);
+        s.thin = (concentration, stride);
+        s
     };
     vec![
         s("reference", n, 0.0, 0.0, 0.0, false),
@@ -113,6 +145,23 @@ fn settings(res: i64) -> Vec<Setting> {
         s("grid+skip-empty", 24, 0.0, 0.0, 1e-3, true),
         s("grid+skip-empty", 12, 0.0, 0.0, 1e-3, true),
         s("grid+skip-empty+density-first", 12, 1e-3, 0.0, 1e-3, true),
+        thin(s("reference", 24, 0.0, 0.0, 0.0, false), 0.9, 2),
+        thin(s("reference", 24, 0.0, 0.0, 0.0, false), 0.9, 4),
+        thin(s("density-first", 24, 1e-3, 0.0, 0.0, false), 0.9, 4),
+        cells(s("grid", 24, 0.0, 0.0, 0.0, true), 32),
+        cells(s("grid", 12, 0.0, 0.0, 0.0, true), 32),
+        cells(s("grid", 8, 0.0, 0.0, 0.0, true), 32),
+        cells(s("grid", 12, 0.0, 0.0, 0.0, true), 64),
+        cells(s("grid", 8, 0.0, 0.0, 0.0, true), 64),
+        cells(s("grid", 6, 0.0, 0.0, 0.0, true), 64),
+        cells(s("grid", 4, 0.0, 0.0, 0.0, true), 64),
+        fine(s("grid", 12, 0.0, 0.0, 0.0, true), 64, false),
+        fine(s("grid", 8, 0.0, 0.0, 0.0, true), 64, false),
+        cells(s("grid", 8, 0.0, 0.0, 0.0, true), 128),
+        cells(s("grid", 6, 0.0, 0.0, 0.0, true), 128),
+        cells(s("grid+density-first", 8, 1e-3, 0.0, 0.0, true), 64),
+        bf16(s("reference", n, 0.0, 0.0, 0.0, false)),
+        bf16(s("density-first", 24, 1e-3, 0.0, 0.0, false)),
     ]
 }
 
@@ -233,31 +282,39 @@ fn run_scene<F: RadianceField>(
 ) -> Result<(Vec<serde_json::Value>, Tensor)> {
     let (_, dev) = scene.fields[0].kind_device();
     let r = res * res;
-    let render_all = |rc: &RenderConfig, grids: &[Option<OccupancyGrid>]| -> Result<(Image, (i64, i64))> {
-        let mut parts = Vec::new();
-        let (mut dq, mut cq) = (0, 0);
-        for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
-            let renderer = Renderer::new(*field, camera, rc)?;
-            let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
-            for &pose in poses {
-                let pose = Poses::from_angles(&[pose], Kind::Float, dev);
-                let (img, (d, c)) =
-                    renderer.render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
-                parts.push(img);
-                dq += d;
-                cq += c;
+    let render_all =
+        |rc: &RenderConfig, opts: FieldOptions, grids: &[Option<OccupancyGrid>]| -> Result<(Image, (i64, i64))> {
+            let mut parts = Vec::new();
+            let (mut dq, mut cq) = (0, 0);
+            for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
+                let mut renderer = Renderer::new(*field, camera, rc)?;
+                renderer.field = opts;
+                let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
+                for &pose in poses {
+                    let pose = Poses::from_angles(&[pose], Kind::Float, dev);
+                    let (img, (d, c)) =
+                        renderer.render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
+                    parts.push(img);
+                    dq += d;
+                    cq += c;
+                }
             }
-        }
-        let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
-        Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
-    };
+            let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+            Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
+        };
     let n_images = (scene.fields.len() * poses.len()) as f64;
     eprintln!("{} {res}²: dense reference (N={} + {}) …", scene.name, a.reference_steps, a.reference_steps);
     let dense_rc = RenderConfig { num_steps: a.reference_steps, jitter: false, ..Default::default() };
     let no_grids: Vec<Option<OccupancyGrid>> = scene.fields.iter().map(|_| None).collect();
-    let (dense, _) = render_all(&dense_rc, &no_grids)?;
+    let (dense, _) = render_all(&dense_rc, FieldOptions::default(), &no_grids)?;
 
-    let list = settings(res);
+    let baseline = format!("reference N={}", release_steps(res));
+    let list: Vec<Setting> = settings(res)
+        .into_iter()
+        .filter(|s| s.name == baseline || a.only.is_empty() || a.only.iter().any(|o| s.name.contains(o.as_str())))
+        // The analytic field has no networks to run in bfloat16.
+        .filter(|s| !(s.bf16 && scene.name == "analytic"))
+        .collect();
     let bar = ProgressBar::new(list.len() as u64).with_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} configurations, {elapsed} elapsed, eta {eta}")
             .unwrap()
@@ -268,6 +325,7 @@ fn run_scene<F: RadianceField>(
     let mut reference_images = Tensor::zeros([0], (Kind::Float, dev));
     for s in &list {
         let rc = s.render_config();
+        let opts = FieldOptions { compute_kind: s.bf16.then_some(Kind::BFloat16), ..Default::default() };
         // Grids are built once per shape, timed apart from the renders that reuse them.
         let (grids, grid_ms, grid_queries) = match s.grid {
             Some(cfg) => {
@@ -277,7 +335,9 @@ fn run_scene<F: RadianceField>(
                     .iter()
                     .zip(&scene.latents)
                     .map(|(f, l)| {
-                        Renderer::new(*f, camera, &rc).and_then(|r| r.occupancy_grid(&l.shape, cfg)).map(Some)
+                        let mut r = Renderer::new(*f, camera, &rc)?;
+                        r.field = opts;
+                        r.occupancy_grid(&l.shape, cfg).map(Some)
                     })
                     .collect::<gdrf_core::Result<Vec<_>>>()?;
                 let ms = 1000.0 * t.elapsed().as_secs_f64() / scene.fields.len() as f64;
@@ -290,14 +350,14 @@ fn run_scene<F: RadianceField>(
         let mut out = None;
         for rep in 0..=a.repeats {
             let t = Instant::now();
-            let o = render_all(&rc, &grids)?;
+            let o = render_all(&rc, opts, &grids)?;
             if rep > 0 {
                 times.push(1000.0 * t.elapsed().as_secs_f64() / n_images);
             }
             out = Some(o);
         }
         let (img, (dq, cq)) = out.expect("rendered");
-        if s.name == format!("reference N={}", release_steps(res)) {
+        if s.name == baseline {
             reference_images = img.rgb.shallow_clone();
         }
         let ms = median(&times);
@@ -309,7 +369,10 @@ fn run_scene<F: RadianceField>(
             "min_weight": s.min_weight,
             "termination": s.termination,
             "importance_skip": s.importance_skip,
-            "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation})),
+            "importance_concentration": s.thin.0,
+            "importance_stride": s.thin.1,
+            "bf16": s.bf16,
+            "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation, "cells_only": g.cells_only})),
             "ms_per_image": ms,
             "ms_per_image_runs": times,
             "grid_ms_per_shape": grid_ms,

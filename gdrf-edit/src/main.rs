@@ -94,6 +94,11 @@ struct RenderArgs {
     no_deformation: bool,
     #[arg(long)]
     no_correction: bool,
+    /// Run the networks' hidden layers in bfloat16 (integration stays float32). About 2×
+    /// faster on GPUs and on CPUs with bfloat16 instructions (AVX512-BF16, AMX), slower
+    /// elsewhere; it cost 0.7 dB against the dense reference in `gdrf-edit bench`.
+    #[arg(long)]
+    bf16: bool,
     /// Density-first: shade only samples whose weight exceeds this (the pixel moves by at
     /// most this × samples per ray); 0 shades every sample (the reference sampler).
     #[arg(long, default_value_t = 0.0)]
@@ -107,6 +112,10 @@ struct RenderArgs {
     /// Density above which a grid cell counts as occupied (no denser point lies in an empty cell).
     #[arg(long, default_value_t = 0.5)]
     grid_threshold: f64,
+    /// With --grid: sample only the occupied cells along each ray (empty stretches between
+    /// them count as empty space), not the whole interval from the first to the last.
+    #[arg(long)]
+    grid_cells: bool,
     /// Early ray termination: a ray stops once its transmittance falls below this; no
     /// pixel moves by more than it. 0 = off.
     #[arg(long, default_value_t = 0.0)]
@@ -115,6 +124,14 @@ struct RenderArgs {
     /// importance samples (their image is then their coarse render). 0 = off.
     #[arg(long, default_value_t = 0.0)]
     skip_empty: f64,
+    /// Rays whose coarse weights lie, to at least this fraction, in three neighbouring
+    /// intervals (a single sharp surface) evaluate only one importance sample in
+    /// `--thin-stride`. 0 = off.
+    #[arg(long, default_value_t = 0.0)]
+    thin_concentrated: f64,
+    /// One importance sample in this many is kept on concentrated rays.
+    #[arg(long, default_value_t = 4)]
+    thin_stride: usize,
     /// Samples evaluated at once; bounds memory. Small chunks are also faster on CPU.
     #[arg(long, default_value_t = 1 << 14)]
     chunk_points: usize,
@@ -216,11 +233,16 @@ fn render(a: RenderArgs) -> Result<()> {
         shade_min_weight: a.min_weight,
         termination: a.termination,
         importance_skip: a.skip_empty,
+        importance_concentration: a.thin_concentrated,
+        importance_stride: a.thin_stride,
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
-    renderer.field =
-        FieldOptions { no_deformation: a.no_deformation, no_correction: a.no_correction, ..Default::default() };
+    renderer.field = FieldOptions {
+        no_deformation: a.no_deformation,
+        no_correction: a.no_correction,
+        compute_kind: a.bf16.then_some(Kind::BFloat16),
+    };
 
     let latent = generator.cfg.latent_dim as i64;
     let code = |s: i64| seeded_randn(&[1, latent], s).to_device(dev);
@@ -247,7 +269,11 @@ fn render(a: RenderArgs) -> Result<()> {
     let start = Instant::now();
     let mut rgb = Vec::with_capacity(total);
     let mut depth = Vec::with_capacity(total);
-    let grid_cfg = GridConfig { resolution: a.grid, threshold: a.grid_threshold, ..Default::default() };
+    if a.grid_cells && a.grid == 0 {
+        bail!("--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 64)");
+    }
+    let grid_cfg =
+        GridConfig { resolution: a.grid, threshold: a.grid_threshold, cells_only: a.grid_cells, ..Default::default() };
     for i in 0..a.seeds.len() as i64 {
         let lat = latents.narrow(i, 1);
         // The grid depends on the shape alone: one per seed, shared by its views.

@@ -1,7 +1,8 @@
 //! A per-instance occupancy grid, built from the shape side alone (Φ and T_σ at the cell
 //! centres, no colour), and rendering inside it: rays that meet no occupied cell cost one
 //! sample (the far end, see below), the others are sampled only over the interval between
-//! their first and last occupied cell. The grid depends on the shape modulation only, so a
+//! their first and last occupied cell, or (`cells_only`) only in the occupied cells along
+//! them. The grid depends on the shape modulation only, so a
 //! grid is built once per shape and reused for every view and every appearance.
 use super::composite::composite;
 use super::renderer::{Noise, Renderer};
@@ -28,11 +29,15 @@ pub struct GridConfig {
     /// Occupied cells grow by this many cells in every direction, so that density between
     /// cell centres (and the correction field's Δσ there) is not lost.
     pub dilation: i64,
+    /// Place samples only in the occupied cells along each ray (bins of half a cell),
+    /// empty stretches between them counting as empty space, instead of over the whole
+    /// interval between a ray's first and last occupied cell.
+    pub cells_only: bool,
 }
 
 impl Default for GridConfig {
     fn default() -> Self {
-        Self { resolution: 32, threshold: 0.5, dilation: 1 }
+        Self { resolution: 32, threshold: 0.5, dilation: 1, cells_only: false }
     }
 }
 
@@ -168,6 +173,23 @@ impl OccupancyGrid {
     }
 }
 
+impl OccupancyGrid {
+    /// The occupancy `(B, R, M)` of M equal bins of [start, end] along each ray (a bin is
+    /// occupied when either of its ends lies in an occupied cell; bins are at most half a
+    /// cell long, as [`Self::clip`]'s steps) and whether a ray meets any `(B, R)`.
+    pub fn bins(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, Tensor) {
+        let cell = 2.0 * self.half / self.cfg.resolution as f64;
+        let m = ((end - start) / (0.5 * cell)).ceil().max(1.0) as i64;
+        let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
+        let t = Tensor::linspace(start, end, m + 1, (kind, device));
+        let x = rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * t.view([1, 1, m + 1, 1]);
+        let edges = self.contains(&x); // (B, R, M + 1)
+        let occ = edges.narrow(2, 0, m).logical_or(&edges.narrow(2, 1, m));
+        let hit = occ.any_dim(2, false);
+        (occ.to_kind(Kind::Float), hit)
+    }
+}
+
 /// Colours of a bundle of rays and what they cost.
 #[derive(Debug)]
 pub struct RayColours {
@@ -216,7 +238,9 @@ impl<F: RadianceField> Renderer<'_, F> {
         }
         tch::no_grad(|| {
             let r = rays.num_rays();
-            let (bounds, hit) = grid.clip(rays, self.camera.ray_start, self.camera.ray_end);
+            let (start, end) = (self.camera.ray_start, self.camera.ray_end);
+            let (support, hit) =
+                if grid.cfg.cells_only { grid.bins(rays, start, end) } else { grid.clip(rays, start, end) };
             let hit = hit.view([r]);
             let on = hit.nonzero().view([-1]);
             let off = hit.logical_not().nonzero().view([-1]);
@@ -233,7 +257,9 @@ impl<F: RadianceField> Renderer<'_, F> {
                 colour_evals += c.colour_evals;
             };
             if on.size()[0] > 0 {
-                let sub = rays.select_rays(&on).with_bounds(bounds.index_select(1, &on));
+                let sub = rays.select_rays(&on);
+                let support = support.index_select(1, &on);
+                let sub = if grid.cfg.cells_only { sub.with_occupied(support) } else { sub.with_bounds(support) };
                 let pick = |t: &Option<Tensor>| t.as_ref().map(|t| t.index_select(1, &on));
                 let noise = Noise { jitter: pick(&noise.jitter), importance: pick(&noise.importance) };
                 put(&on, self.render_bundle(latents, &sub, &noise)?);

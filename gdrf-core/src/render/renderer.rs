@@ -2,7 +2,9 @@
 //! batches (with gradients), patches, and chunked inference in bounded memory.
 use super::composite::{composite, transmittance, weights_from_density, CompositeOptions};
 use super::occupancy::{OccupancyGrid, RayColours};
-use super::samplers::{gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in};
+use super::samplers::{
+    gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in, OccupiedLength,
+};
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::{FieldOptions, Generator, Latents};
@@ -54,6 +56,15 @@ pub struct DensitySamples {
     pub skipped: Option<Tensor>,
     /// Field queries spent.
     pub evaluated: i64,
+}
+
+/// The coarse samples of a bundle: depths `(B, R, Nc)`, integration weights, raw
+/// densities `(B, R, Nc, 1)` and features `(B, R, Nc, F)`.
+struct Coarse<'a> {
+    z: &'a Tensor,
+    weights: &'a Tensor,
+    sigma: &'a Tensor,
+    feature: &'a Tensor,
 }
 
 /// The raw density of a sample that early termination did not evaluate: softplus gives
@@ -179,9 +190,21 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
                 Some(&drawn)
             }
         };
-        let z_c = match &rays.bounds {
-            None => stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts),
-            Some(nf) => {
+        let occupied =
+            rays.occupied.as_ref().map(|o| OccupiedLength::new(o, (self.camera.ray_start, self.camera.ray_end)));
+        let z_c = match (&occupied, &rays.bounds) {
+            (Some(o), _) => {
+                if cfg.termination > 0.0 {
+                    return Err(Error::Invalid(
+                        "early termination does not combine with sampling only in occupied cells".into(),
+                    ));
+                }
+                // As with bounds: the far-end sample ends every ray as the reference's do.
+                let end = Tensor::full([b, r, 1], self.camera.ray_end, opts);
+                Tensor::cat(&[o.stratified(n, jitter).to_kind(opts.0), end], 2)
+            }
+            (None, None) => stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts),
+            (None, Some(nf)) => {
                 // The release's last interval is infinite (delta_final): whatever density a
                 // ray meets at the camera's far end absorbs its remaining light. Rays with
                 // their own bounds keep that sample, so that they end as the reference's do.
@@ -198,10 +221,21 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         let feature_c = feature_c.view([b, r, nc, -1]);
         let mut evaluated = b * r * nc;
         let (z, sigma, features) = if cfg.hierarchical {
-            let z_f = tch::no_grad(|| self.importance(&sigma_c, &z_c, noise));
-            let (z_f, sigma_f, feature_f) = if cfg.importance_skip > 0.0 {
-                let (z_f, sigma_f, feature_f, k) =
-                    tch::no_grad(|| self.importance_where_needed(shape, rays, &z_c, &sigma_c, &feature_c, &z_f));
+            // The coarse weights that place the importance samples (in occupied length
+            // when the rays carry occupied bins).
+            let w_c = tch::no_grad(|| {
+                let sigma = match &occupied {
+                    Some(o) => o.absorb_only_where_occupied(&sigma_c, &z_c),
+                    None => sigma_c.shallow_clone(),
+                };
+                weights_from_density(&sigma, &z_c.unsqueeze(-1), cfg.delta_final)
+            });
+            let z_f = tch::no_grad(|| self.importance(&w_c, &z_c, noise, occupied.as_ref()));
+            let (z_f, sigma_f, feature_f) = if cfg.importance_skip > 0.0 || cfg.importance_concentration > 0.0 {
+                let (z_f, sigma_f, feature_f, k) = tch::no_grad(|| {
+                    let coarse = Coarse { z: &z_c, weights: &w_c, sigma: &sigma_c, feature: &feature_c };
+                    self.importance_where_needed(shape, rays, coarse, &z_f)
+                });
                 evaluated += k;
                 (z_f, sigma_f, feature_f)
             } else {
@@ -214,29 +248,59 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
             (z_c, sigma_c, vec![feature_c])
         };
         let (z, order) = sort_depths(&z);
-        Ok(DensitySamples { sigma: gather_samples(&sigma, &order), features, z, order, skipped: None, evaluated })
+        let sigma = gather_samples(&sigma, &order);
+        let sigma = match &occupied {
+            Some(o) => o.absorb_only_where_occupied(&sigma, &z),
+            None => sigma,
+        };
+        Ok(DensitySamples { sigma, features, z, order, skipped: None, evaluated })
     }
 
-    /// The importance samples `z_f: (B, R, N)` of the rays whose coarse weights inside the
-    /// ray (the ones the importance pdf reads: all but the first and last) sum to at least
-    /// `importance_skip`. The other rays' importance samples duplicate their first N coarse
-    /// samples — depth, density and feature — so that their merged integration is exactly
-    /// their coarse one, at no query. Returns depths, densities `(B, R, N, 1)`, features
-    /// `(B, R, N, F)` and the queries spent.
+    /// The importance samples `z_f: (B, R, N)` evaluated only where they are needed.
+    /// Rays whose coarse weights inside the ray (the ones the importance pdf reads: all but
+    /// the first and last) sum to less than `importance_skip` get none: their importance
+    /// samples duplicate their first N coarse samples — depth, density and feature — so
+    /// that their merged integration is exactly their coarse one. Rays whose inside weight
+    /// lies, to the fraction `importance_concentration`, in three neighbouring intervals
+    /// get one sample in `importance_stride`: the middle one of each group of `stride`
+    /// (with the bench's sorted uniforms, an evenly spread subset), the others copy it. A
+    /// copy sits at zero distance from its original, so it absorbs nothing and carries no
+    /// weight: the ray integrates as if only the kept samples were there. Returns depths,
+    /// densities `(B, R, N, 1)`, features `(B, R, N, F)` and the queries spent.
     fn importance_where_needed(
         &self,
         shape: &Film,
         rays: &Rays,
-        z_c: &Tensor,
-        sigma_c: &Tensor,
-        feature_c: &Tensor,
+        coarse: Coarse,
         z_f: &Tensor,
     ) -> (Tensor, Tensor, Tensor, i64) {
+        let Coarse { z: z_c, weights: w_c, sigma: sigma_c, feature: feature_c } = coarse;
         let (nc, n, width) = (z_c.size()[2], z_f.size()[2], feature_c.size()[3]);
-        let w = weights_from_density(sigma_c, &z_c.unsqueeze(-1), self.config.delta_final);
-        let interior = w.narrow(2, 1, nc - 2).sum_dim_intlist(2, false, w.kind()); // (B, R, 1)
-        let need = interior.ge(self.config.importance_skip);
-        let (sigma, feature, k) = self.query_where(shape, rays, z_f, &need.expand_as(z_f), width);
+        let device = z_f.device();
+        let w = w_c.squeeze_dim(-1);
+        let interior = w.narrow(2, 1, nc - 2);
+        let total = interior.sum_dim_intlist(2, true, w.kind()); // (B, R, 1)
+        let need = total.ge(self.config.importance_skip);
+        let j = Tensor::arange(n, (Kind::Int64, device)).view([1, 1, n]);
+        let rep = if self.config.importance_concentration > 0.0 {
+            let k = interior.size()[2];
+            let width = k.min(3);
+            let windows = (0..width)
+                .map(|o| interior.narrow(2, o, k - width + 1))
+                .reduce(|a, b| a + b)
+                .expect("at least one window");
+            let peak = windows.amax(&[2i64][..], true);
+            let concentrated = peak.ge_tensor(&(&total * self.config.importance_concentration));
+            let stride = self.config.importance_stride as i64;
+            let thinned = (j.divide_scalar_mode(stride, "floor") * stride + stride / 2).clamp_max(n - 1);
+            thinned.expand([z_f.size()[0], z_f.size()[1], n], false).where_self(&concentrated, &j)
+        } else {
+            j.expand_as(z_f)
+        };
+        let evaluate = rep.eq_tensor(&j).logical_and(&need);
+        let (sigma, feature, k) = self.query_where(shape, rays, z_f, &evaluate, width);
+        let (z_f, sigma, feature) =
+            (z_f.gather(2, &rep, false), gather_samples(&sigma, &rep), gather_samples(&feature, &rep));
         let need4 = need.unsqueeze(-1);
         (
             z_f.where_self(&need, &z_c.narrow(2, 0, n)),
@@ -246,17 +310,27 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         )
     }
 
-    /// N importance depths `(B, R, N)` from the coarse densities `(B, R, Nc, 1)` at `z_c`.
-    fn importance(&self, sigma_c: &Tensor, z_c: &Tensor, noise: &Noise) -> Tensor {
+    /// N importance depths `(B, R, N)` from the coarse weights `w_c: (B, R, Nc, 1)` at
+    /// `z_c`; drawn in occupied length when `occupied` is given, so that none falls in
+    /// an empty bin.
+    fn importance(&self, w_c: &Tensor, z_c: &Tensor, noise: &Noise, occupied: Option<&OccupiedLength>) -> Tensor {
         let s = z_c.size();
         let (b, r, nc) = (s[0], s[1], s[2]);
         let n = self.config.num_steps as i64;
-        let w = weights_from_density(sigma_c, &z_c.unsqueeze(-1), self.config.delta_final);
         let u = match &noise.importance {
             Some(u) => u.shallow_clone(),
             None => Tensor::rand([b, r, n], (z_c.kind(), z_c.device())),
         };
-        importance_depths(&z_c.reshape([b * r, nc]), &w.reshape([b * r, nc]), &u.reshape([b * r, n])).view([b, r, n])
+        let coords = match occupied {
+            Some(o) => o.length_at(z_c).to_kind(z_c.kind()),
+            None => z_c.shallow_clone(),
+        };
+        let f = importance_depths(&coords.reshape([b * r, nc]), &w_c.reshape([b * r, nc]), &u.reshape([b * r, n]))
+            .view([b, r, n]);
+        match occupied {
+            Some(o) => o.depth_at(&f).to_kind(z_c.kind()),
+            None => f,
+        }
     }
 
     /// The field at the samples `mask: (B, R, S)` of depths `z: (B, R, S)` only: raw
@@ -343,7 +417,8 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         }
         let (mut z, mut sigma, mut features, mut done) = (z_c.shallow_clone(), sigma_c, vec![feature_c], done_c);
         if self.config.hierarchical {
-            let z_f = self.importance(&sigma, z_c, noise);
+            let w_c = weights_from_density(&sigma, &z_c.unsqueeze(-1), df);
+            let z_f = self.importance(&w_c, z_c, noise, None);
             // A ray that stopped skips the importance samples behind its first skipped
             // coarse sample.
             let stop = z_c.where_self(&done.logical_not(), &z_c.full_like(f64::INFINITY)).amin(&[2i64][..], true);
