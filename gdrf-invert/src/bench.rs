@@ -6,7 +6,9 @@ use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::synth::{render_object, Metadata, Split};
 use gdrf_core::device;
 use gdrf_core::edit::{generator_id, Features};
+use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::fidelity::{psnr, ssim};
+use gdrf_core::eval::probe::{structure_classes, Probe};
 use gdrf_core::invert::init::Initialiser;
 use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{load_effnet, render_views, InvertConfig, Inverter, Perceptual, Start};
@@ -50,6 +52,10 @@ pub struct BenchArgs {
     /// Adam's learning rate of every other method.
     #[arg(long, default_value_t = InvertConfig::default().lr)]
     lr: f64,
+    /// The ground-truth probe (`gdrf-train probe`) whose structure classes on the novel
+    /// views are compared with the objects' own.
+    #[arg(long, value_name = "FILE", default_value = "models/chairs-probe/probe.safetensors")]
+    probe: PathBuf,
     /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
     #[arg(long, default_value = "docs/bench/invert")]
     out: PathBuf,
@@ -72,6 +78,9 @@ struct Point {
     input_ssim: f64,
     novel_psnr: f64,
     novel_ssim: f64,
+    /// Fraction of the probe's structure classes (legs, back, arms, seat) on the novel
+    /// views that match the object's true ones.
+    structure_agreement: f64,
 }
 
 struct Case {
@@ -80,6 +89,14 @@ struct Case {
     /// `(V, 3, R, R)` ground truth and their poses.
     novel: Tensor,
     novel_poses: Vec<(f64, f64)>,
+    /// `(1, 4)` the object's true structure classes.
+    structure: Tensor,
+}
+
+/// The ground-truth probe and the features it reads.
+struct Judge<'a> {
+    probe: &'a Probe,
+    effnet: &'a EfficientNetLite0,
 }
 
 fn to_tensor(rgb: &[f32], res: i64) -> Tensor {
@@ -90,15 +107,27 @@ fn mean(v: &Tensor) -> f64 {
     f64::try_from(v.mean(Kind::Double)).unwrap_or(f64::NAN)
 }
 
-/// Fidelity of `f` on `case` (input view and novel views).
-fn score(g: &Generator, cam: &CameraConfig, f: &Features, case: &Case, res: i64, n: usize) -> Result<[f64; 4]> {
+/// Fidelity of `f` on `case` (input view and novel views) and the probe's structure
+/// agreement on the novel views.
+fn score(
+    g: &Generator,
+    cam: &CameraConfig,
+    f: &Features,
+    case: &Case,
+    res: i64,
+    n: usize,
+    judge: &Judge,
+) -> Result<[f64; 5]> {
     let at_input = render_views(g, cam, f, &[case.pose], res, n)?;
     let novel = render_views(g, cam, f, &case.novel_poses, res, n)?;
+    let classes = judge.probe.predict(Some(judge.effnet), &novel)?.classes;
+    let agree = classes.eq_tensor(&case.structure.to_device(classes.device())).to_kind(Kind::Float);
     Ok([
         mean(&psnr(&at_input, &case.photo)?),
         mean(&ssim(&at_input, &case.photo)?),
         mean(&psnr(&novel, &case.novel)?),
         mean(&ssim(&novel, &case.novel)?),
+        mean(&agree),
     ])
 }
 
@@ -130,10 +159,26 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             .iter()
             .map(|p| Ok(to_tensor(&render_object(&r.shape, &r.appearance, p.0, p.1, &opts)?.rgb, res)))
             .collect::<Result<Vec<_>>>()?;
-        cases.push(Case { photo, pose: (r.pitch, r.yaw), novel: Tensor::cat(&novel, 0).to_device(dev), novel_poses });
+        let structure = Tensor::from_slice(&structure_classes(&r.shape)?).view([1, 4]);
+        cases.push(Case {
+            photo,
+            pose: (r.pitch, r.yaw),
+            novel: Tensor::cat(&novel, 0).to_device(dev),
+            novel_poses,
+            structure,
+        });
     }
+    let probe = Probe::load(&a.probe, dev).with_context(|| format!("loading --probe {}", a.probe.display()))?;
     let effnet = load_effnet(dev)?;
     let perc = Perceptual::effnet(&effnet);
+    let judge = Judge { probe: &probe, effnet: &effnet };
+    // The probe on the ground-truth novel views themselves: the best agreement it can give.
+    let mut truth_agreement = 0.0;
+    for case in &cases {
+        let classes = probe.predict(Some(&effnet), &case.novel)?.classes;
+        truth_agreement += mean(&classes.eq_tensor(&case.structure.to_device(dev)).to_kind(Kind::Float));
+    }
+    let truth_agreement = truth_agreement / cases.len() as f64;
     let base = InvertConfig {
         steps: a.steps,
         resolution: res,
@@ -170,7 +215,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         with_init,
         InvertConfig { coarse_fraction: 0.5, ..d.clone() },
     ));
-    methods.push((format!("{tag}, defaults, patience 20"), with_init, InvertConfig { patience: 20, ..d }));
+    methods.push((format!("{tag}, defaults, patience 20"), with_init, InvertConfig { patience: 20, ..d.clone() }));
+    methods.push((format!("{tag}, defaults, bf16"), with_init, InvertConfig { bf16: true, ..d }));
     eprintln!(
         "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),
@@ -184,7 +230,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     for (name, use_init, cfg) in &methods {
         // Sums over the cases, per checkpoint.
         let checkpoints = checkpoints(cfg.steps);
-        let mut sums = vec![[0.0f64; 6]; checkpoints.len()];
+        let mut sums = vec![[0.0f64; 7]; checkpoints.len()];
         for case in &cases {
             let t0 = std::time::Instant::now();
             let start = match (use_init, &init) {
@@ -210,13 +256,13 @@ pub fn bench(a: BenchArgs) -> Result<()> {
                         last = (l.step + 1, l.seconds);
                     }
                 }
-                let s = score(g, &cam, &inv.features(), case, res, a.samples)?;
+                let s = score(g, &cam, &inv.features(), case, res, a.samples, &judge)?;
                 let row = &mut sums[ci];
                 row[0] += last.1 + start_seconds;
-                for k in 0..4 {
+                for k in 0..5 {
                     row[k + 1] += s[k];
                 }
-                row[5] += last.0 as f64;
+                row[6] += last.0 as f64;
             }
             eprint!(".");
         }
@@ -226,23 +272,25 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             points.push(Point {
                 method: name.clone(),
                 steps: cp,
-                steps_run: r[5] / n,
+                steps_run: r[6] / n,
                 seconds: r[0] / n,
                 input_psnr: r[1] / n,
                 input_ssim: r[2] / n,
                 novel_psnr: r[3] / n,
                 novel_ssim: r[4] / n,
+                structure_agreement: r[5] / n,
             });
         }
         eprintln!(" {name}");
     }
-    write_outputs(&a, &points, &pose_errors, &gen_path, dev, threads)
+    write_outputs(&a, &points, &pose_errors, truth_agreement, &gen_path, dev, threads)
 }
 
 fn write_outputs(
     a: &BenchArgs,
     points: &[Point],
     pose_errors: &[(f64, f64)],
+    truth_agreement: f64,
     gen: &std::path::Path,
     dev: Device,
     threads: usize,
@@ -290,17 +338,27 @@ fn write_outputs(
         "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
         "device": format!("{dev:?}"), "threads": threads,
         "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
+        "probe": a.probe.display().to_string(),
+        "structure_agreement_of_the_ground_truth_views": truth_agreement,
         "points": points,
     });
     gdrf_core::checkpoint::write_atomic(
         &PathBuf::from(format!("{stem}.json")),
         serde_json::to_string_pretty(&json)?.as_bytes(),
     )?;
-    let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM |\n|---|---|---|---|---|---|---|\n");
+    let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement |\n|---|---|---|---|---|---|---|---|\n");
     for p in points {
         md += &format!(
-            "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} |\n",
-            p.method, p.steps, p.steps_run, p.seconds, p.input_psnr, p.input_ssim, p.novel_psnr, p.novel_ssim
+            "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} |\n",
+            p.method,
+            p.steps,
+            p.steps_run,
+            p.seconds,
+            p.input_psnr,
+            p.input_ssim,
+            p.novel_psnr,
+            p.novel_ssim,
+            p.structure_agreement
         );
     }
     // Against the reference (the first method): the novel-view PSNR gain of its last point
@@ -319,6 +377,9 @@ fn write_outputs(
             None => format!("| {m} | not reached | — | — |\n"),
         };
     }
+    md += &format!(
+        "\nStructure agreement: the fraction of the probe's structure classes (legs, back, arms, seat) on the novel views that match the object's own; on the ground-truth views themselves the probe agrees {truth_agreement:.3}.\n"
+    );
     gdrf_core::checkpoint::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
     print!("{md}");
     println!("wrote {stem}.json, {stem}.png, {stem}.md");

@@ -157,6 +157,18 @@ struct InvertArgs {
     /// Stop after this many steps without a relative improvement of 1e-3 (0 = never).
     #[arg(long, default_value_t = InvertConfig::default().patience)]
     patience: usize,
+    /// Run the generator's hidden layers in bfloat16 (integration and the features stay
+    /// float32): faster on GPUs and on CPUs with bfloat16 instructions (AVX512-BF16, AMX),
+    /// slower elsewhere. See `gdrf-invert bench`.
+    #[arg(long)]
+    bf16: bool,
+    /// Optimise the camera pose along with the features, starting from --pose (or the
+    /// initialiser's prediction, or the camera's mean pose).
+    #[arg(long)]
+    refine_pose: bool,
+    /// Adam's learning rate of the refined pose, in degrees per step.
+    #[arg(long, default_value_t = InvertConfig::default().pose_lr.to_degrees())]
+    pose_lr: f64,
     /// Views of the novel-view orbit (turntable at the photo's pitch); 0 = none.
     #[arg(long, default_value_t = 24)]
     orbit: usize,
@@ -214,6 +226,9 @@ fn run(a: InvertArgs) -> Result<()> {
         coarse_fraction: a.coarse_fraction,
         patience: a.patience,
         seed: a.seed,
+        bf16: a.bf16,
+        refine_pose: a.refine_pose,
+        pose_lr: a.pose_lr.to_radians(),
         ..Default::default()
     };
     cfg.validate()?;
@@ -297,6 +312,18 @@ fn run(a: InvertArgs) -> Result<()> {
     })?;
     bar.finish_and_clear();
     let seconds = inv.history.last().map(|l| l.seconds).unwrap_or(0.0);
+    // The pose the features were fitted at (refined, with --refine-pose).
+    let start_pose = pose;
+    let pose = inv.features.pose.unwrap_or(pose);
+    if cfg.refine_pose {
+        eprintln!(
+            "refined pose: pitch {:.1}°, yaw {:.1}° (from {:.1}°, {:.1}°)",
+            pose.0.to_degrees(),
+            pose.1.to_degrees(),
+            start_pose.0.to_degrees(),
+            start_pose.1.to_degrees()
+        );
+    }
 
     // Outputs.
     inv.features.save(&a.out.join("features.safetensors"), &id)?;
@@ -308,10 +335,10 @@ fn run(a: InvertArgs) -> Result<()> {
     let start_features = gdrf_core::edit::Features {
         w_s: start.w_s.shallow_clone(),
         appearance: gdrf_core::nn::film::Film::from_raw(&start.appearance_raw),
-        pose: Some(pose),
+        pose: Some(start_pose),
         z: None,
     };
-    let start_img = view(&start_features, &[pose])?;
+    let start_img = view(&start_features, &[start_pose])?;
     let input = gdrf_core::invert::resize(&photo, view_res);
     save_png(&a.out.join("input.png"), &to_rgb8(&input.get(0), false)?)?;
     save_png(&a.out.join("reconstruction.png"), &to_rgb8(&recon.get(0), false)?)?;
@@ -358,6 +385,8 @@ fn run(a: InvertArgs) -> Result<()> {
         "generator": gen_path.display().to_string(),
         "generator_id": id,
         "pose_deg": [pose.0.to_degrees(), pose.1.to_degrees()],
+        "start_pose_deg": [start_pose.0.to_degrees(), start_pose.1.to_degrees()],
+        "refine_pose": cfg.refine_pose,
         "perceptual": perc_name,
         "config": cfg,
         "steps_run": inv.history.len(),

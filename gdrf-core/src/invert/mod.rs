@@ -63,6 +63,14 @@ pub struct InvertConfig {
     pub min_improvement: f64,
     /// Seed of the renderer noise and the ray subsets.
     pub seed: u64,
+    /// The generator's hidden layers in bfloat16 (integration and the optimised features
+    /// stay float32): faster on GPUs and on CPUs with bfloat16 instructions.
+    pub bf16: bool,
+    /// Optimise the camera pose (pitch, yaw) along with the features, from the given or
+    /// predicted pose.
+    pub refine_pose: bool,
+    /// Adam's learning rate of the pose, in radians.
+    pub pose_lr: f64,
 }
 
 impl Default for InvertConfig {
@@ -81,6 +89,9 @@ impl Default for InvertConfig {
             patience: 0,
             min_improvement: 1e-3,
             seed: 0,
+            bf16: false,
+            refine_pose: false,
+            pose_lr: 0.005,
         }
     }
 }
@@ -113,6 +124,9 @@ impl InvertConfig {
         }
         if !(0.0..1.0).contains(&self.coarse_fraction) {
             return bad("coarse_fraction", self.coarse_fraction.to_string(), "in [0, 1)");
+        }
+        if !(self.pose_lr > 0.0 && self.pose_lr.is_finite()) {
+            return bad("pose_lr", self.pose_lr.to_string(), "a positive number of radians");
         }
         if self.min_improvement.is_nan() || self.min_improvement < 0.0 {
             return bad("min_improvement", self.min_improvement.to_string(), "≥ 0");
@@ -225,10 +239,21 @@ pub fn render_at_pose(
     noise: &Noise,
     subset: Option<&Tensor>,
 ) -> Result<Tensor> {
-    let g = renderer.generator;
-    let (kind, device) = g.kind_device();
-    let poses = Poses::from_angles(&[pose], kind, device);
-    let rays = Rays::from_poses(&poses, res, renderer.camera.fov_deg);
+    let (kind, device) = renderer.generator.kind_device();
+    render_at_poses(renderer, latents, &Poses::from_angles(&[pose], kind, device), res, noise, subset)
+}
+
+/// [`render_at_pose`] at one pose given as tensors (gradients flow into the pose when it
+/// requires them).
+pub fn render_at_poses(
+    renderer: &Renderer,
+    latents: &Latents,
+    poses: &Poses,
+    res: i64,
+    noise: &Noise,
+    subset: Option<&Tensor>,
+) -> Result<Tensor> {
+    let rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
     let pixels = match subset {
         None => renderer.render_rays(latents, &rays, noise)?.pixel,
         Some(idx) => {
@@ -258,6 +283,8 @@ pub struct Inverter<'a> {
     /// w_s `(1, H)` and the raw appearance `(1, 2·L_c·H)`, both requiring grad.
     params: [Tensor; 2],
     adam: SmallAdam,
+    /// (pitch, yaw) `(2,)` requiring grad, and its optimiser, when the pose is refined.
+    pose_param: Option<(Tensor, SmallAdam)>,
     /// The photo at each render size used.
     targets: std::collections::BTreeMap<i64, Tensor>,
     best: f64,
@@ -298,6 +325,12 @@ impl<'a> Inverter<'a> {
         let a0 = start.appearance_raw.detach().to_kind(kind).to_device(device);
         let params = [w0.copy().set_requires_grad(true), a0.copy().set_requires_grad(true)];
         let adam = SmallAdam::new(&params, cfg.lr);
+        let pose_param = cfg.refine_pose.then(|| {
+            let p = Tensor::from_slice(&[start.pose.0, start.pose.1]).to_kind(kind).to_device(device);
+            let p = p.set_requires_grad(true);
+            let opt = SmallAdam::new(std::slice::from_ref(&p), cfg.pose_lr);
+            (p, opt)
+        });
         let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
         rc.validate()?;
         let photo = photo.to_kind(Kind::Float).to_device(device);
@@ -313,6 +346,7 @@ impl<'a> Inverter<'a> {
             a0,
             params,
             adam,
+            pose_param,
             targets,
             best: f64::INFINITY,
             since_best: 0,
@@ -346,10 +380,15 @@ impl<'a> Inverter<'a> {
             let k = ((rays as f64 * cfg.ray_fraction).round() as i64).clamp(1, rays);
             rng(2).uniform(&[rays]).argsort(0, false).narrow(0, 0, k).sort(0, false).0
         });
-        let renderer = Renderer::new(g, self.camera, &self.rc)?;
+        let mut renderer = Renderer::new(g, self.camera, &self.rc)?;
+        renderer.field.compute_kind = cfg.bf16.then_some(Kind::BFloat16);
         let p = &self.params;
         let latents = Latents { shape: g.shape_from_w(&p[0], None), appearance: Film::from_raw(&p[1]) };
-        let img = render_at_pose(&renderer, &latents, self.pose, res, &noise, subset.as_ref())?;
+        let poses = match &self.pose_param {
+            Some((p, _)) => Poses { pitch: p.narrow(0, 0, 1).view([1, 1]), yaw: p.narrow(0, 1, 1).view([1, 1]) },
+            None => Poses::from_angles(&[self.pose], self.w0.kind(), device),
+        };
+        let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref())?;
         let target = &self.targets[&res];
         let mse = (&img - target).square().mean(Kind::Float);
         let perc = match self.perceptual {
@@ -366,8 +405,15 @@ impl<'a> Inverter<'a> {
             )));
         }
         self.adam.zero_grad();
+        if let Some((_, opt)) = &mut self.pose_param {
+            opt.zero_grad();
+        }
         loss.backward();
         self.adam.step();
+        if let Some((p, opt)) = &mut self.pose_param {
+            opt.step();
+            self.pose = (p.double_value(&[0]), p.double_value(&[1]));
+        }
         self.seconds += t0.elapsed().as_secs_f64();
         let log = StepLog {
             step,
