@@ -23,6 +23,11 @@ pub struct GeneratorConfig {
     pub correct_scale: f64,
     /// Scale of the displacement: Δx = deform_scale · raw.
     pub deform_scale: f64,
+    /// Initial deformation head. 0 (the release): zero weights, so every code starts with
+    /// the same shape and the adversarial game alone has to break that symmetry; f > 0:
+    /// frequency_init(f) weights, U(±√(6/H)/f), so shapes differ with the code from the
+    /// first step (an option for small budgets, see docs/training.md).
+    pub deform_head_frequency: f64,
 }
 
 impl Default for GeneratorConfig {
@@ -36,6 +41,7 @@ impl Default for GeneratorConfig {
             deform_layers: 4,
             correct_scale: 100.0,
             deform_scale: 1.0,
+            deform_head_frequency: 0.0,
         }
     }
 }
@@ -53,6 +59,12 @@ impl GeneratorConfig {
             if v == 0 {
                 return Err(Error::Config(format!("generator.{key} must be at least 1")));
             }
+        }
+        if !(self.deform_head_frequency >= 0.0 && self.deform_head_frequency.is_finite()) {
+            return Err(Error::Config(format!(
+                "generator.deform_head_frequency is {}, expected 0 (zero head, the release) or a positive frequency",
+                self.deform_head_frequency
+            )));
         }
         if self.color_layers < 2 {
             return Err(Error::Config(format!(

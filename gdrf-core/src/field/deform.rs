@@ -24,7 +24,12 @@ impl DeformField {
                 FilmLayer::new(vs.clone() / "film" / i, inp, h, init)
             })
             .collect();
-        let head = Linear::new(vs / "head", h, 4, WeightInit::Zeros);
+        let init = if cfg.deform_head_frequency > 0.0 {
+            WeightInit::Frequency(cfg.deform_head_frequency)
+        } else {
+            WeightInit::Zeros
+        };
+        let head = Linear::new(vs / "head", h, 4, init);
         Self { film, head, hidden: h, correct_scale: cfg.correct_scale, deform_scale: cfg.deform_scale }
     }
 

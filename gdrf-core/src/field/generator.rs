@@ -222,6 +222,27 @@ mod tests {
         assert_eq!(f64::try_from(grad[0].abs().max()).unwrap(), 0.0);
     }
 
+    /// With a non-zero head (`deform_head_frequency`), codes start with different shapes:
+    /// Δx at the same points differs between two codes, by about the head's scale.
+    #[test]
+    fn a_frequency_initialised_head_gives_each_code_its_shape() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg = GeneratorConfig { hidden_dim: 64, deform_head_frequency: 50.0, ..Default::default() };
+        let g = Generator::new(&vs.root(), &cfg).unwrap();
+        let w = g.deform.head.weight.detach();
+        let bound = (6.0f64 / 64.0).sqrt() / 50.0;
+        assert!(f64::try_from(w.abs().max()).unwrap() <= bound);
+        assert!(f64::try_from(w.abs().max()).unwrap() > 0.5 * bound);
+        let z = Tensor::randn([2, 256], (Kind::Float, Device::Cpu));
+        let x = Tensor::rand([1, 50, 3], (Kind::Float, Device::Cpu)).expand([2, 50, 3], false) - 0.5;
+        let (dx, _) = g.deform.forward(&x, &g.shape_from_z(&z, None));
+        let diff = f64::try_from((dx.get(0) - dx.get(1)).abs().mean(Kind::Float)).unwrap();
+        println!("mean |Δx(z₀) − Δx(z₁)| = {diff:.2e}");
+        assert!(diff > 1e-3 && diff < 0.1, "mean |Δx(z₀) − Δx(z₁)| = {diff}");
+        let bad = GeneratorConfig { deform_head_frequency: -1.0, ..Default::default() }.validate();
+        assert!(bad.unwrap_err().to_string().contains("deform_head_frequency"));
+    }
+
     #[test]
     fn truncation_zero_gives_the_mean_modulation() {
         let vs = nn::VarStore::new(Device::Cpu);
