@@ -16,23 +16,39 @@ use tch::{Device, Kind, Tensor};
 /// interleaved with another test's.
 static GLOBAL_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-#[test]
-fn optimisation_recovers_a_generated_image_and_its_features_reload() {
+/// The shipped generator and its camera.
+fn shipped() -> gdrf_core::checkpoint::LoadedGenerator {
     let path = repo_root().join("models/chairs-tiny/generator.safetensors");
-    let m =
-        load_generator(&path, Device::Cpu, Kind::Float).unwrap_or_else(|e| panic!("the shipped model is needed: {e}"));
-    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
-    let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
-    // The target: seed 7's features at `pose`, rendered without jitter.
-    let truth = Features::from_seed(g, 7);
+    load_generator(&path, Device::Cpu, Kind::Float).unwrap_or_else(|e| panic!("the shipped model is needed: {e}"))
+}
+
+/// Features `f` rendered at `pose`, `res`², `n` + `n` samples, without jitter (importance
+/// samples at mid-points): `(1, 3, res, res)` in [−1, 1].
+fn view(
+    g: &gdrf_core::Generator,
+    cam: &gdrf_core::CameraConfig,
+    f: &Features,
+    pose: (f64, f64),
+    res: i64,
+    n: usize,
+) -> Tensor {
     let rc = RenderConfig { num_steps: n, jitter: false, ..Default::default() };
-    let r = Renderer::new(g, &cam, &rc).unwrap();
+    let r = Renderer::new(g, cam, &rc).unwrap();
     let noise = Noise {
         jitter: None,
         importance: Some(Tensor::full([1, res * res, n as i64], 0.5, (Kind::Float, Device::Cpu))),
     };
-    let photo =
-        tch::no_grad(|| render_at_pose(&r, &latents(g, &truth, &truth, None), pose, res, &noise, None)).unwrap();
+    tch::no_grad(|| render_at_pose(&r, &latents(g, f, f, None), pose, res, &noise, None)).unwrap()
+}
+
+#[test]
+fn optimisation_recovers_a_generated_image_and_its_features_reload() {
+    let m = shipped();
+    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
+    let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
+    // The target: seed 7's features at `pose`, rendered without jitter.
+    let truth = Features::from_seed(g, 7);
+    let photo = view(g, &cam, &truth, pose, res, n);
 
     let start = Start::mean(g, pose, 2000);
     let cfg = InvertConfig {
@@ -70,10 +86,7 @@ fn optimisation_recovers_a_generated_image_and_its_features_reload() {
     inv.features.save(&file, &id).unwrap();
     let back = Features::load(&file, g, &id).unwrap();
     assert_eq!(back.pose, Some(pose));
-    let a =
-        tch::no_grad(|| render_at_pose(&r, &latents(g, &inv.features, &inv.features, None), pose, res, &noise, None))
-            .unwrap();
-    let b = tch::no_grad(|| render_at_pose(&r, &latents(g, &back, &back, None), pose, res, &noise, None)).unwrap();
+    let (a, b) = (view(g, &cam, &inv.features, pose, res, n), view(g, &cam, &back, pose, res, n));
     assert_eq!(f64::try_from((&a - &b).abs().max()).unwrap(), 0.0);
     let mse = f64::try_from((&b - &photo).square().mean(Kind::Float)).unwrap();
     assert!(mse < 0.5 * first.mse, "the reloaded features render MSE {mse}, the start {}", first.mse);
@@ -86,20 +99,11 @@ fn optimisation_recovers_a_generated_image_and_its_features_reload() {
 /// pitch trade off against each other on the shipped model and the pitch drifts.
 #[test]
 fn pose_refinement_moves_a_wrong_pose_toward_the_true_one() {
-    let path = repo_root().join("models/chairs-tiny/generator.safetensors");
-    let m =
-        load_generator(&path, Device::Cpu, Kind::Float).unwrap_or_else(|e| panic!("the shipped model is needed: {e}"));
+    let m = shipped();
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
     let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
     let truth = Features::from_seed(g, 7);
-    let rc = RenderConfig { num_steps: n, jitter: false, ..Default::default() };
-    let r = Renderer::new(g, &cam, &rc).unwrap();
-    let noise = Noise {
-        jitter: None,
-        importance: Some(Tensor::full([1, res * res, n as i64], 0.5, (Kind::Float, Device::Cpu))),
-    };
-    let photo =
-        tch::no_grad(|| render_at_pose(&r, &latents(g, &truth, &truth, None), pose, res, &noise, None)).unwrap();
+    let photo = view(g, &cam, &truth, pose, res, n);
     let wrong = (pose.0 + 3f64.to_radians(), pose.1 + 9f64.to_radians());
     // The true features, at the wrong pose: only the camera is wrong.
     let z = truth.z.as_ref().unwrap();
