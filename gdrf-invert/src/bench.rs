@@ -332,7 +332,13 @@ fn write_outputs(
         }
     };
     let json = serde_json::json!({
-        "generator": gen.display().to_string(),
+        // Relative to the repository for the shipped model: no build machine's path in
+        // the committed figures.
+        "generator": gen
+            .strip_prefix(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+            .unwrap_or(gen)
+            .display()
+            .to_string(),
         "dataset": a.dataset.display().to_string(),
         "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
         "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
