@@ -30,11 +30,13 @@ def main():
     panels = sorted({(r["scene"], r["resolution"]) for r in rows}, key=lambda k: (k[0] != "model", k[1]))
     cols = len({k[1] for k in panels})
     nrows = (len(panels) + cols - 1) // cols
-    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols, 4.0 * nrows), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.2 * cols + 2.6, 4.0 * nrows), dpi=110, squeeze=False)
     # Families in the benchmark's order (the configuration's name before " N=").
     families = list(dict.fromkeys(r["config"].split(" N=")[0] for r in rows))
-    shapes = "osv<D^>Px*hH8p+d|_"
+    # Filled markers only (thin ones vanish under the others), each family its own colour.
+    shapes = "osv<D^>Ph*H8pdX"
     markers = {fam: shapes[i % len(shapes)] for i, fam in enumerate(families)}
+    colours = {fam: plt.cm.tab20(i % 20) for i, fam in enumerate(families)}
     for ax, (scene, res) in zip(axes.flat, panels):
         sel = [r for r in rows if r["scene"] == scene and r["resolution"] == res]
         pts = []
@@ -42,7 +44,8 @@ def main():
             fr = [r for r in sel if r["config"].split(" N=")[0] == fam]
             if not fr:
                 continue
-            ax.scatter([r["ms_per_image"] for r in fr], [r["psnr_db"] for r in fr], marker=markers[fam], label=fam, s=30)
+            ax.scatter([r["ms_per_image"] for r in fr], [r["psnr_db"] for r in fr], marker=markers[fam],
+                       color=colours[fam], label=fam, s=30)
             for r in fr:
                 ax.annotate(f"N={r['steps']}", (r["ms_per_image"], r["psnr_db"]), fontsize=6, xytext=(3, 2),
                             textcoords="offset points")
@@ -57,11 +60,16 @@ def main():
         ax.set_xlabel("ms per image (median)")
         ax.set_ylabel("PSNR vs dense reference (dB)")
         ax.set_title(f"{scene}, {res}×{res}", fontsize=9)
-        ax.legend(fontsize=6)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
+    # One legend beside the panels (inside them it hid the points), each label once.
+    legend = {}
+    for ax in axes.flat:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, h)
+    fig.legend(legend.values(), legend.keys(), loc="center right", fontsize=7)
     fig.suptitle(f"{data.get('title', 'renderer')} — {data.get('device', '')}, {data.get('threads', '?')} threads", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1 - 2.6 / (5.2 * cols + 2.6), 1))
     fig.savefig(out)
 
 

@@ -101,6 +101,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     fails(&[&photo, "--pose", "sixty", "--out", n], &["--pose", "PITCH,YAW"]);
     fails(&[&photo, "--mask", &junk, "--out", n], &["mask", "junk.png"]);
     fails(&[&photo, "--steps", "3", "--lr=-1", "--out", n], &["invert.lr"]);
+    fails(&[&photo, "--refine-pose", "--pose-lr", "0", "--out", n], &["--pose-lr", "degrees"]);
     fails(&[&photo, "--generator", &junk, "--out", n], &["--generator", "junk.png"]);
     assert!(!fresh.exists(), "a failed run created its output folder");
     // An output folder that holds files is refused without --force.

@@ -236,8 +236,8 @@ impl Default for RenderConfig {
 }
 
 impl RenderConfig {
-    /// Whether inference renders skip queries (density-first shading, early termination or
-    /// skipped importance samples): they then take the staged path.
+    /// Whether inference renders skip queries (density-first shading, early termination,
+    /// skipped or thinned importance samples): they then take the staged path.
     pub fn skips_samples(&self) -> bool {
         self.shade_min_weight > 0.0
             || self.termination > 0.0

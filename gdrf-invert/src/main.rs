@@ -211,6 +211,9 @@ pub(crate) fn default_generator() -> PathBuf {
 
 fn run(a: InvertArgs) -> Result<()> {
     let photo_path = a.photo.clone().expect("clap requires the photo");
+    if !(a.pose_lr > 0.0 && a.pose_lr.is_finite()) {
+        bail!("--pose-lr {}: expected a positive number of degrees per step", a.pose_lr);
+    }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
     let cfg = InvertConfig {

@@ -152,38 +152,39 @@ impl OccupancyGrid {
         occ.logical_or(&inside.logical_not())
     }
 
-    /// Each ray's interval `(B, R, 2)` between its first and last occupied cell (widened
-    /// by one lookup step, within [start, end]) and whether it meets any `(B, R)`: the
-    /// ray is walked in steps of half a cell, so it cannot cross a cell unseen.
-    pub fn clip(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, Tensor) {
+    /// Whether the P points `(B, R, P)` that walk each ray from `start` to `end` in equal
+    /// steps of at most half a cell lie in occupied cells (a ray cannot cross a cell
+    /// unseen), and that step.
+    fn walk(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, f64) {
         let cell = 2.0 * self.half / self.cfg.resolution as f64;
-        let m = (((end - start) / (0.5 * cell)).ceil() as i64 + 1).max(2);
+        let p = (((end - start) / (0.5 * cell)).ceil() as i64 + 1).max(2);
         let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
-        let t = Tensor::linspace(start, end, m, (kind, device));
-        let step = (end - start) / (m - 1) as f64;
-        let x = rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * t.view([1, 1, m, 1]);
-        let occ = self.contains(&x); // (B, R, M)
+        let t = Tensor::linspace(start, end, p, (kind, device));
+        let x = rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * t.view([1, 1, p, 1]);
+        (self.contains(&x), (end - start) / (p - 1) as f64)
+    }
+
+    /// Each ray's interval `(B, R, 2)` between its first and last occupied cell (widened
+    /// by one step of [`Self::walk`], within [start, end]) and whether it meets any `(B, R)`.
+    pub fn clip(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, Tensor) {
+        let (occ, step) = self.walk(rays, start, end);
+        let m = occ.size()[2];
         let hit = occ.any_dim(2, false);
-        let ramp = Tensor::arange(m, (Kind::Int64, device)).view([1, 1, m]);
+        let ramp = Tensor::arange(m, (Kind::Int64, occ.device())).view([1, 1, m]);
         let first = ramp.where_scalarother(&occ, m).amin(&[2i64][..], false);
         let last = ramp.where_scalarother(&occ, -1).amax(&[2i64][..], false);
+        let kind = rays.dirs.kind();
         let near = (first.to_kind(kind) * step + start - step).clamp(start, end);
         let far = (last.to_kind(kind) * step + start + step).clamp(start, end);
         (Tensor::stack(&[near, far], 2), hit)
     }
-}
 
-impl OccupancyGrid {
-    /// The occupancy `(B, R, M)` of M equal bins of [start, end] along each ray (a bin is
-    /// occupied when either of its ends lies in an occupied cell; bins are at most half a
-    /// cell long, as [`Self::clip`]'s steps) and whether a ray meets any `(B, R)`.
+    /// The occupancy `(B, R, M)` of the M bins between the points of [`Self::walk`] (a bin
+    /// is occupied when either of its ends lies in an occupied cell) and whether a ray
+    /// meets any `(B, R)`.
     pub fn bins(&self, rays: &Rays, start: f64, end: f64) -> (Tensor, Tensor) {
-        let cell = 2.0 * self.half / self.cfg.resolution as f64;
-        let m = ((end - start) / (0.5 * cell)).ceil().max(1.0) as i64;
-        let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
-        let t = Tensor::linspace(start, end, m + 1, (kind, device));
-        let x = rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * t.view([1, 1, m + 1, 1]);
-        let edges = self.contains(&x); // (B, R, M + 1)
+        let (edges, _) = self.walk(rays, start, end);
+        let m = edges.size()[2] - 1;
         let occ = edges.narrow(2, 0, m).logical_or(&edges.narrow(2, 1, m));
         let hit = occ.any_dim(2, false);
         (occ.to_kind(Kind::Float), hit)
