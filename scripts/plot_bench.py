@@ -3,6 +3,7 @@
 implementation.  plot_bench.py bench.json out.png"""
 import json
 import sys
+import textwrap
 
 import matplotlib
 
@@ -22,10 +23,10 @@ def main():
         xs = [p + i * width for p in range(len(phases))]
         ys = [run["median_s"][p] for p in phases]
         bars = ax.bar(xs, ys, width, label=run["implementation"])
-        ax.bar_label(bars, fmt="%.1f", fontsize=7)
+        ax.bar_label(bars, fmt="%.3g", fontsize=7)
     ax.set_xticks([p + width * (len(runs) - 1) / 2 for p in range(len(phases))], phases)
     ax.set_ylabel("median seconds")
-    ax.set_title(data.get("title", "benchmark"), fontsize=9)
+    ax.set_title("\n".join(textwrap.wrap(data.get("title", "benchmark"), 90)), fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out)

@@ -25,9 +25,14 @@ pub fn peak_rss_mb() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
-/// The repository the binaries were built in (its scripts and virtual environment).
+/// The project's folder (its scripts, weights, shipped models and virtual environment):
+/// `$GDRF_ROOT` when set (binaries copied to another machine or folder), else the
+/// repository the binaries were built in.
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_default()
+    match std::env::var_os("GDRF_ROOT") {
+        Some(p) => p.into(),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_default(),
+    }
 }
 
 /// `$GDRF_PYTHON`, else the project's `.venv` (made by `scripts/setup.sh`).

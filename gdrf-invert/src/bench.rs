@@ -335,7 +335,7 @@ fn write_outputs(
         // Relative to the repository for the shipped model: no build machine's path in
         // the committed figures.
         "generator": gen
-            .strip_prefix(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".."))
+            .strip_prefix(gdrf_core::bench::repo_root())
             .unwrap_or(gen)
             .display()
             .to_string(),

@@ -16,7 +16,7 @@ use gdrf_core::invert::{
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
 use gdrf_core::plot::{draw_panels, Panel, Series};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use tch::{Kind, Tensor};
 
 /// Invert a photo into GDRF shape and appearance features.
@@ -206,7 +206,7 @@ fn main() {
 }
 
 pub(crate) fn default_generator() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/chairs-tiny/generator.safetensors")
+    gdrf_core::bench::repo_root().join("models/chairs-tiny/generator.safetensors")
 }
 
 fn run(a: InvertArgs) -> Result<()> {
@@ -279,8 +279,7 @@ fn run(a: InvertArgs) -> Result<()> {
             let Some(backbone) = &a.lpips_backbone else {
                 bail!("--perceptual {name} needs --lpips-backbone FILE (scripts/export_lpips_backbone.py writes it)");
             };
-            let heads = Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join(format!("../weights/lpips-{}-heads.safetensors", net.name()));
+            let heads = gdrf_core::bench::repo_root().join(format!("weights/lpips-{}-heads.safetensors", net.name()));
             lpips = Lpips::load(net, backbone, &heads, dev)?;
             Some(Perceptual {
                 name: format!("LPIPS ({})", net.name()),

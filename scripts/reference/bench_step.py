@@ -80,6 +80,8 @@ def parse():
     a("--warmup", type=int, default=1, help="untimed steps first")
     a("--steps", type=int, default=3, help="timed steps")
     a("--threads", type=int, default=os.cpu_count())
+    a("--device", default="cpu", help="cpu, cuda or cuda:N (every tensor is created there)")
+    a("--bf16", action="store_true", help="bfloat16 autocast around the whole step")
     a("--seed", type=int, default=0)
     args = ap.parse_args()
     if args.batch_split < 1 or args.batch % args.batch_split:
@@ -96,6 +98,7 @@ def parse():
 class Bench:
     def __init__(self, a):
         self.a = a
+        self.cuda = torch.device(a.device).type == "cuda"
         torch.manual_seed(a.seed)
         self.gen = ref.Generator(a.latent_dim, a.hidden_dim, a.mapping_hidden_dim, trunk=a.trunk_layers,
                                  color=a.color_layers, deform_layers=a.deform_layers, correct_scale=a.correct_scale)
@@ -197,12 +200,21 @@ class Bench:
         for s, p in zip(self.ema, self.g_params):
             s.sub_((1 - d) * (s - p))
 
+    def sync(self):
+        if self.cuda:
+            torch.cuda.synchronize()
+
     def step(self, step):
-        t0 = time.perf_counter()
-        d = self.d_step(step)
-        t1 = time.perf_counter()
-        g = self.g_step(step)
-        t2 = time.perf_counter()
+        dev = torch.device(self.a.device)
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=self.a.bf16):
+            self.sync()
+            t0 = time.perf_counter()
+            d = self.d_step(step)
+            self.sync()
+            t1 = time.perf_counter()
+            g = self.g_step(step)
+            self.sync()
+            t2 = time.perf_counter()
         if not (math.isfinite(d) and math.isfinite(g)):
             print(f"warning: non-finite loss at step {step} (d {d}, g {g})", file=sys.stderr)
         return t1 - t0, t2 - t1, t2 - t0
@@ -211,6 +223,7 @@ class Bench:
 def main():
     a = parse()
     torch.set_num_threads(a.threads)
+    torch.set_default_device(a.device)
     bench = Bench(a)
     samples = {"step": [], "d_step": [], "g_step": []}
     for i in range(a.warmup):
@@ -229,6 +242,7 @@ def main():
     print(json.dumps(dict(implementation="PyTorch reference", torch=torch.__version__, threads=a.threads,
                           median_s=med, samples_s=samples,
                           peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                          peak_gpu_mb=torch.cuda.max_memory_allocated() / 2**20 if bench.cuda else None,
                           images_per_second=a.batch / med["step"])))
 
 

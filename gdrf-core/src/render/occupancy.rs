@@ -219,7 +219,14 @@ impl RayColours {
 impl<F: RadianceField> Renderer<'_, F> {
     /// The occupancy grid of one shape (row `i` of `shape`) for this renderer's camera.
     pub fn occupancy_grid(&self, shape: &Film, cfg: GridConfig) -> Result<OccupancyGrid> {
-        OccupancyGrid::build(self.generator, shape, self.field, self.camera, cfg, self.config.chunk_points as i64)
+        OccupancyGrid::build(
+            self.generator,
+            shape,
+            self.field,
+            self.camera,
+            cfg,
+            self.config.chunk_points_on(shape.gamma.device()),
+        )
     }
 
     /// Renders rays `(1, R, 3)` of one image inside its shape's `grid` (no gradients):

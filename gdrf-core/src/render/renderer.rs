@@ -600,8 +600,8 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     }
 
     /// Ray chunk length for `per_ray` samples per ray over `b` images.
-    pub(crate) fn chunk_rays(&self, per_ray: i64, b: i64) -> i64 {
-        (self.config.chunk_points as i64 / (per_ray * b).max(1)).max(1)
+    pub(crate) fn chunk_rays(&self, per_ray: i64, b: i64, device: tch::Device) -> i64 {
+        (self.config.chunk_points_on(device) / (per_ray * b).max(1)).max(1)
     }
 
     /// Runs `f(start, len)` over consecutive ray ranges of about `chunk_points` samples
@@ -613,7 +613,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         f: impl Fn(i64, i64) -> Result<RenderedRays>,
     ) -> Result<RenderedRays> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        let chunk = self.chunk_rays(per_ray, b);
+        let chunk = self.chunk_rays(per_ray, b, rays.dirs.device());
         if chunk >= r {
             return f(0, r);
         }

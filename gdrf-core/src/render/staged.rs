@@ -107,7 +107,7 @@ impl<F: RadianceField> Renderer<'_, F> {
     /// that any image fits in bounded memory), to keep and shade with [`Self::shade_chunks`].
     pub fn shape_sides(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<Vec<ShapeSide>> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b);
+        let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b, rays.dirs.device());
         let mut sides = Vec::new();
         let mut start = 0;
         while start < r {

@@ -10,6 +10,7 @@ use gdrf_core::data::SplitChoice;
 use gdrf_core::disc::Discriminator;
 use gdrf_core::loss::{LossConfig, Schedule};
 use gdrf_core::render::{Noise, Renderer};
+use gdrf_core::train::config::Precision;
 use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfig, Trainer};
 use gdrf_core::{device, CameraConfig, Generator, GeneratorConfig, RenderConfig};
 use serde_json::json;
@@ -52,7 +53,7 @@ enum Bench {
     },
     /// Full training steps (D step, G step, clipping, Adam, EMA) of a training config's
     /// stage, gdrf's `Trainer::step` against the PyTorch reference at the same sizes, on
-    /// the CPU. Real images come from a small procedural dataset generated in a temporary
+    /// the CPU or a GPU (`--device`), in float32 or bfloat16. Real images come from a small procedural dataset generated in a temporary
     /// folder (the reference uses random images). Timed steps are steps where R1 is due.
     Step {
         /// Training config (TOML), e.g. configs/chairs-tiny.toml.
@@ -77,7 +78,14 @@ enum Bench {
         /// Skip the PyTorch reference (report gdrf alone).
         #[arg(long)]
         no_reference: bool,
-        /// Folder for step-<config>-stage<I>-b<batch>.json and .png.
+        /// cpu, cuda or cuda:N; both implementations run there (default: cpu).
+        #[arg(long, default_value = "cpu")]
+        device: String,
+        /// float32 or bfloat16 (gdrf: `precision`; the reference: bfloat16 autocast).
+        /// Default: the config's.
+        #[arg(long)]
+        precision: Option<String>,
+        /// Folder for step-<config>-stage<I>-b<batch>[-<device>][-bf16].json and .png.
         #[arg(long, default_value = "bench")]
         out_dir: PathBuf,
     },
@@ -197,16 +205,24 @@ impl Drop for TempDir {
 }
 
 /// The config of `gdrf-bench step`: stage `stage` of the file as the only stage (batch
-/// overridden), on the CPU, never sampling or rolling back, training on a small
+/// overridden), on `target`'s device and precision, never sampling or rolling back, training on a small
 /// procedural dataset under `tmp`. Also returns notes on what the comparison leaves out.
 fn step_config(
     path: &Path,
     stage: usize,
     batch: Option<i64>,
     split: Option<i64>,
+    target: &StepTarget,
     tmp: &Path,
 ) -> Result<(TrainConfig, Vec<String>)> {
     let mut cfg = TrainConfig::load(path)?;
+    if let Some(p) = &target.precision {
+        cfg.precision = match p.as_str() {
+            "float32" => Precision::Float32,
+            "bfloat16" => Precision::Bfloat16,
+            other => bail!("--precision {other}: expected float32 or bfloat16"),
+        };
+    }
     let n = cfg.stages.len();
     if stage >= n {
         bail!("--stage {stage}: {} has {n} stage(s), numbered from 0", path.display());
@@ -255,7 +271,7 @@ fn step_config(
     }
     let resolution = st.resolution as usize;
     cfg.stages = vec![st];
-    cfg.device = "cpu".into();
+    cfg.device = target.device.clone();
     cfg.schedule.total_steps = i64::MAX / 2;
     cfg.schedule.sample_interval = 0;
     cfg.debug = Default::default();
@@ -372,6 +388,12 @@ fn step_reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result
     Ok(a.into_iter().map(|(k, v)| if v.is_empty() { format!("--{k}") } else { format!("--{k}={v}") }).collect())
 }
 
+/// Where `gdrf-bench step` runs both implementations, and in which precision.
+struct StepTarget {
+    device: String,
+    precision: Option<String>,
+}
+
 #[allow(clippy::too_many_arguments)]
 fn bench_step(
     config: &Path,
@@ -381,13 +403,15 @@ fn bench_step(
     steps: usize,
     warmup: usize,
     no_reference: bool,
+    target: &StepTarget,
     out_dir: &Path,
 ) -> Result<()> {
     if steps == 0 {
         bail!("--steps must be at least 1");
     }
     let tmp = TempDir::new("gdrf-bench-step")?;
-    let (cfg, notes) = step_config(config, stage, batch, batch_split, &tmp.0)?;
+    let (cfg, notes) = step_config(config, stage, batch, batch_split, target, &tmp.0)?;
+    let bf16 = cfg.precision == Precision::Bfloat16;
     for n in &notes {
         eprintln!("note: {n}");
     }
@@ -396,8 +420,10 @@ fn bench_step(
     let stem = config.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "config".into());
     let r1 = if cfg.loss.r1_gamma == 0.0 { "R1 off".to_string() } else { "R1 due".to_string() };
     let title = format!(
-        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {res}², {n}+{n} samples, {r1}",
-        st.batch_split
+        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {res}², {n}+{n} samples, {r1}, {} {}",
+        st.batch_split,
+        target.device,
+        if bf16 { "bfloat16" } else { "float32" }
     );
     eprintln!("{title}\nrunning gdrf ({warmup} warm-up + {steps} timed steps) …");
     let (g_lr, d_lr) = cfg.learning_rates(0);
@@ -411,7 +437,8 @@ fn bench_step(
         "regions": st.regions,
         "warmup_steps": warmup,
         "timed_steps": steps,
-        "device": "cpu",
+        "device": target.device,
+        "precision": if bf16 { "bfloat16" } else { "float32" },
         "timed_steps_r1": "timed steps run at step indices where R1 is due (multiples of loss.r1_interval)",
         "real_images": "gdrf: a 64-image procedural dataset at the stage's resolution; reference: random images and poses",
         "g_lr": g_lr,
@@ -424,7 +451,11 @@ fn bench_step(
         "camera": cfg.camera,
         "notes": notes,
     });
-    let ref_args = step_reference_args(&cfg, warmup, steps)?;
+    let mut ref_args = step_reference_args(&cfg, warmup, steps)?;
+    ref_args.push(format!("--device={}", target.device));
+    if bf16 {
+        ref_args.push("--bf16".into());
+    }
     let mut runs = vec![bench_step_gdrf(cfg, &tmp.0.join("run"), warmup, steps)?];
     if !no_reference {
         runs.push(run_reference("bench_step.py", &ref_args)?);
@@ -452,20 +483,33 @@ fn bench_step(
             num(y, "peak_rss_mb") / num(x, "peak_rss_mb")
         );
     }
+    let machine = if target.device == "cpu" {
+        format!("{} CPU threads", runs[0]["threads"])
+    } else {
+        format!("{}, {} CPU threads", target.device, runs[0]["threads"])
+    };
     let doc = json!({
         "title": title,
-        "machine": format!("{} CPU threads", runs[0]["threads"]),
+        "machine": machine,
         "settings": settings,
         "phases": ["step"],
         "runs": runs,
     });
-    write_report(out_dir, &format!("step-{stem}-stage{stage}-b{b}"), &doc)
+    let mut name = format!("step-{stem}-stage{stage}-b{b}");
+    if target.device != "cpu" {
+        name += &format!("-{}", target.device.replace(':', ""));
+    }
+    if bf16 {
+        name += "-bf16";
+    }
+    write_report(out_dir, &name, &doc)
 }
 
 fn run() -> Result<()> {
     match Cli::parse().command {
-        Bench::Step { config, batch, batch_split, stage, steps, warmup, no_reference, out_dir } => {
-            bench_step(&config, batch, batch_split, stage, steps, warmup, no_reference, &out_dir)?;
+        Bench::Step { config, batch, batch_split, stage, steps, warmup, no_reference, device, precision, out_dir } => {
+            let target = StepTarget { device, precision };
+            bench_step(&config, batch, batch_split, stage, steps, warmup, no_reference, &target, &out_dir)?;
         }
         Bench::Losses { batch, batch_split, resolution, steps, repeats, no_reference, out_dir } => {
             if batch_split < 1 || batch % batch_split != 0 {
