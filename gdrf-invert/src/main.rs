@@ -169,6 +169,18 @@ struct InvertArgs {
     /// Adam's learning rate of the refined pose, in degrees per step.
     #[arg(long, default_value_t = InvertConfig::default().pose_lr.to_degrees())]
     pose_lr: f64,
+    /// Sample each ray only between its first and last cell of an occupancy grid of the
+    /// current shape with this many cells per side (0 = off), rebuilt every
+    /// --grid-refresh steps. Off by default: on the shipped model the grid at the
+    /// default threshold covers nearly every ray (see docs/inversion.md).
+    #[arg(long, default_value_t = InvertConfig::default().grid)]
+    grid: i64,
+    /// Steps between rebuilds of the occupancy grid (--grid).
+    #[arg(long, default_value_t = InvertConfig::default().grid_refresh)]
+    grid_refresh: usize,
+    /// Density softplus(σ) under which a grid cell counts as empty (--grid).
+    #[arg(long, default_value_t = InvertConfig::default().grid_threshold)]
+    grid_threshold: f64,
     /// Views of the novel-view orbit (turntable at the photo's pitch); 0 = none.
     #[arg(long, default_value_t = 24)]
     orbit: usize,
@@ -232,6 +244,9 @@ fn run(a: InvertArgs) -> Result<()> {
         bf16: a.bf16,
         refine_pose: a.refine_pose,
         pose_lr: a.pose_lr.to_radians(),
+        grid: a.grid,
+        grid_refresh: a.grid_refresh,
+        grid_threshold: a.grid_threshold,
         ..Default::default()
     };
     cfg.validate()?;

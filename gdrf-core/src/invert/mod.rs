@@ -29,6 +29,7 @@ use crate::eval::effnet::EfficientNetLite0;
 use crate::eval::perceptual::{self, EffnetPerceptual};
 use crate::field::generator::Generator;
 use crate::nn::film::Film;
+use crate::render::occupancy::{GridConfig, OccupancyGrid};
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{Error, Latents, Result};
@@ -71,6 +72,16 @@ pub struct InvertConfig {
     pub refine_pose: bool,
     /// Adam's learning rate of the pose, in radians.
     pub pose_lr: f64,
+    /// Cells per side of an occupancy grid of the current shape (0 = none): each ray is
+    /// sampled only between its first and last occupied cell, and rays that meet none
+    /// from the far end alone. The grid is rebuilt from the current w_s every
+    /// `grid_refresh` steps, so the shape can grow by its dilation per rebuild.
+    pub grid: i64,
+    /// Steps between rebuilds of the grid.
+    pub grid_refresh: usize,
+    /// The grid's density threshold: cells where softplus(σ) stays below it count as
+    /// empty (see [`GridConfig::threshold`]). Higher skips more and loses faint density.
+    pub grid_threshold: f64,
 }
 
 impl Default for InvertConfig {
@@ -92,6 +103,9 @@ impl Default for InvertConfig {
             bf16: false,
             refine_pose: false,
             pose_lr: 0.005,
+            grid: 0,
+            grid_refresh: 10,
+            grid_threshold: 0.5,
         }
     }
 }
@@ -127,6 +141,15 @@ impl InvertConfig {
         }
         if !(self.pose_lr > 0.0 && self.pose_lr.is_finite()) {
             return bad("pose_lr", self.pose_lr.to_string(), "a positive number of radians");
+        }
+        if self.grid != 0 && !(4..=512).contains(&self.grid) {
+            return bad("grid", self.grid.to_string(), "0 (none) or 4 to 512 cells per side");
+        }
+        if self.grid_refresh == 0 {
+            return bad("grid_refresh", "0".into(), "at least 1 step");
+        }
+        if !(self.grid_threshold >= 0.0 && self.grid_threshold.is_finite()) {
+            return bad("grid_threshold", self.grid_threshold.to_string(), "a finite density ≥ 0");
         }
         if self.min_improvement.is_nan() || self.min_improvement < 0.0 {
             return bad("min_improvement", self.min_improvement.to_string(), "≥ 0");
@@ -240,11 +263,13 @@ pub fn render_at_pose(
     subset: Option<&Tensor>,
 ) -> Result<Tensor> {
     let (kind, device) = renderer.generator.kind_device();
-    render_at_poses(renderer, latents, &Poses::from_angles(&[pose], kind, device), res, noise, subset)
+    render_at_poses(renderer, latents, &Poses::from_angles(&[pose], kind, device), res, noise, subset, None)
 }
 
 /// [`render_at_pose`] at one pose given as tensors (gradients flow into the pose when it
-/// requires them).
+/// requires them), sampled inside `grid` when one is given (each ray between its first
+/// and last occupied cell; a ray that meets none has every sample at the camera's far
+/// end, so only that point, where the release's infinite last interval is, counts).
 pub fn render_at_poses(
     renderer: &Renderer,
     latents: &Latents,
@@ -252,8 +277,17 @@ pub fn render_at_poses(
     res: i64,
     noise: &Noise,
     subset: Option<&Tensor>,
+    grid: Option<&OccupancyGrid>,
 ) -> Result<Tensor> {
-    let rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
+    let mut rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
+    if let Some(grid) = grid {
+        let end = renderer.camera.ray_end;
+        let bounds = tch::no_grad(|| {
+            let (bounds, hit) = grid.clip(&rays, renderer.camera.ray_start, end);
+            bounds.where_self(&hit.unsqueeze(-1), &bounds.full_like(end))
+        });
+        rays = rays.with_bounds(bounds);
+    }
     let pixels = match subset {
         None => renderer.render_rays(latents, &rays, noise)?.pixel,
         Some(idx) => {
@@ -287,6 +321,8 @@ pub struct Inverter<'a> {
     pose_param: Option<(Tensor, SmallAdam)>,
     /// The photo at each render size used.
     targets: std::collections::BTreeMap<i64, Tensor>,
+    /// The occupancy grid of the shape (`cfg.grid` > 0) and the step it was built at.
+    grid: Option<(usize, OccupancyGrid)>,
     best: f64,
     since_best: usize,
     stopped_early: bool,
@@ -348,6 +384,7 @@ impl<'a> Inverter<'a> {
             adam,
             pose_param,
             targets,
+            grid: None,
             best: f64::INFINITY,
             since_best: 0,
             stopped_early: false,
@@ -388,7 +425,13 @@ impl<'a> Inverter<'a> {
             Some((p, _)) => Poses { pitch: p.narrow(0, 0, 1).view([1, 1]), yaw: p.narrow(0, 1, 1).view([1, 1]) },
             None => Poses::from_angles(&[self.pose], self.w0.kind(), device),
         };
-        let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref())?;
+        if cfg.grid > 0 && self.grid.as_ref().is_none_or(|(at, _)| step - at >= cfg.grid_refresh) {
+            let shape = tch::no_grad(|| g.shape_from_w(&p[0].detach(), None));
+            let gc = GridConfig { resolution: cfg.grid, threshold: cfg.grid_threshold, ..Default::default() };
+            self.grid = Some((step, renderer.occupancy_grid(&shape, gc)?));
+        }
+        let grid = self.grid.as_ref().map(|(_, grid)| grid);
+        let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;
         let target = &self.targets[&res];
         let mse = (&img - target).square().mean(Kind::Float);
         let perc = match self.perceptual {

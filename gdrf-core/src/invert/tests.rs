@@ -77,6 +77,9 @@ fn coarse_steps_patience_and_bad_settings() {
         (InvertConfig { coarse_fraction: 1.0, ..cfg(1) }, "invert.coarse_fraction"),
         (InvertConfig { prior_shape: -1.0, ..cfg(1) }, "invert.prior_shape"),
         (InvertConfig { num_steps: 2, ..cfg(1) }, "invert.num_steps"),
+        (InvertConfig { grid: 2, ..cfg(1) }, "invert.grid"),
+        (InvertConfig { grid_refresh: 0, ..cfg(1) }, "invert.grid_refresh"),
+        (InvertConfig { grid_threshold: f64::NAN, ..cfg(1) }, "invert.grid_threshold"),
     ] {
         let e = invert(&g, &cam, &photo, &start, &bad, None, &mut |_| {}).unwrap_err().to_string();
         assert!(e.contains(key), "{e}");
