@@ -50,6 +50,11 @@ fn seed_features(g: &gdrf_core::Generator, seed: i64) -> Features {
     Features::from_seed(g, seed)
 }
 
+/// The recovery tests' optimisation: 60 steps from the mean code, MSE only.
+fn recovery_cfg(res: i64, n: usize) -> InvertConfig {
+    InvertConfig { steps: 60, resolution: res, num_steps: n, perceptual_weight: 0.0, lr: 0.02, ..Default::default() }
+}
+
 #[test]
 fn optimisation_recovers_a_generated_image_and_its_features_reload() {
     let m = shipped();
@@ -60,14 +65,7 @@ fn optimisation_recovers_a_generated_image_and_its_features_reload() {
     let photo = view(g, &cam, &truth, pose, res, n);
 
     let start = Start::mean(g, pose, 2000);
-    let cfg = InvertConfig {
-        steps: 60,
-        resolution: res,
-        num_steps: n,
-        perceptual_weight: 0.0,
-        lr: 0.02,
-        ..Default::default()
-    };
+    let cfg = recovery_cfg(res, n);
     let inv = invert(g, &cam, &photo, &start, &cfg, None, &mut |_| {}).unwrap();
     let (first, last) = (&inv.history[0], inv.history.last().unwrap());
     // Toward the truth where it matters: the shape w_s encodes. Many directions of w_s
@@ -138,16 +136,7 @@ fn the_occupancy_grid_option_renders_the_plain_image_and_inverts() {
     assert!(mean < 0.002 && max < 0.1, "inside the grid: mean |Δ| {mean}, max {max} (images in [−1, 1])");
 
     let start = Start::mean(g, pose, 2000);
-    let cfg = InvertConfig {
-        steps: 60,
-        resolution: res,
-        num_steps: n,
-        perceptual_weight: 0.0,
-        lr: 0.02,
-        grid: 32,
-        grid_refresh: 10,
-        ..Default::default()
-    };
+    let cfg = InvertConfig { grid: 32, grid_refresh: 10, ..recovery_cfg(res, n) };
     let inv = invert(g, &cam, &photo, &start, &cfg, None, &mut |_| {}).unwrap();
     let (first, last) = (&inv.history[0], inv.history.last().unwrap());
     eprintln!("with the grid: MSE {:.5} → {:.5}", first.mse, last.mse);
