@@ -15,10 +15,6 @@ use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::RenderConfig;
 use tch::{Device, Kind, Tensor};
 
-/// Tests that draw from libtorch's global generator hold this, so that a seeded draw is not
-/// interleaved with another test's.
-static GLOBAL_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
 /// The shipped generator and its camera.
 fn shipped() -> gdrf_core::checkpoint::LoadedGenerator {
     let path = repo_root().join("models/chairs-tiny/generator.safetensors");
@@ -44,12 +40,6 @@ fn view(
     tch::no_grad(|| render_at_pose(&r, &latents(g, f, f, None), pose, res, &noise, None)).unwrap()
 }
 
-/// A seed's features: `seeded_randn` seeds libtorch's global generator, so it holds the lock.
-fn seed_features(g: &gdrf_core::Generator, seed: i64) -> Features {
-    let _global = GLOBAL_RNG.lock().unwrap_or_else(|e| e.into_inner());
-    Features::from_seed(g, seed)
-}
-
 /// The recovery tests' optimisation: 60 steps from the mean code, MSE only.
 fn recovery_cfg(res: i64, n: usize) -> InvertConfig {
     InvertConfig { steps: 60, resolution: res, num_steps: n, perceptual_weight: 0.0, lr: 0.02, ..Default::default() }
@@ -61,7 +51,7 @@ fn optimisation_recovers_a_generated_image_and_its_features_reload() {
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
     let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
     // The target: seed 7's features at `pose`, rendered without jitter.
-    let truth = seed_features(g, 7);
+    let truth = Features::from_seed(g, 7);
     let photo = view(g, &cam, &truth, pose, res, n);
 
     let start = Start::mean(g, pose, 2000);
@@ -110,7 +100,7 @@ fn the_occupancy_grid_option_renders_the_plain_image_and_inverts() {
     let m = shipped();
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
     let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
-    let truth = seed_features(g, 7);
+    let truth = Features::from_seed(g, 7);
     let photo = view(g, &cam, &truth, pose, res, n);
 
     // Many samples, so that the two renders differ by where the grid cut, not by sampling.
@@ -152,7 +142,7 @@ fn pose_refinement_moves_a_wrong_pose_toward_the_true_one() {
     let m = shipped();
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap());
     let (res, n, pose) = (24, 12, (cam.v_mean, 0.8));
-    let truth = seed_features(g, 7);
+    let truth = Features::from_seed(g, 7);
     let photo = view(g, &cam, &truth, pose, res, n);
     let wrong = (pose.0 + 3f64.to_radians(), pose.1 + 9f64.to_radians());
     // The true features, at the wrong pose: only the camera is wrong.
@@ -200,14 +190,12 @@ fn the_initialiser_beats_the_mean_code_on_held_out_generated_images() {
     use gdrf_core::invert::init::{generate, train, InitConfig};
     use gdrf_core::rng::{Purpose, RandomSource, StepRng};
     use gdrf_core::{CameraConfig, GeneratorConfig};
-    let (vs, g) = {
-        let _global = GLOBAL_RNG.lock().unwrap_or_else(|e| e.into_inner());
-        tch::manual_seed(4);
+    let (vs, g) = gdrf_core::rng::with_global_seed(4, || {
         let vs = tch::nn::VarStore::new(Device::Cpu);
         let gcfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
         let g = Generator::new(&vs.root(), &gcfg).unwrap();
         (vs, g)
-    };
+    });
     let mut head = vs.variables()["deform.head.weight"].shallow_clone();
     let u = StepRng::new(9, 0, Purpose::InitWeights, Kind::Float, Device::Cpu).normal(&head.size());
     tch::no_grad(|| head.copy_(&u));

@@ -24,8 +24,7 @@ fn case() -> Case {
     let cam = loaded.header.camera.clone().unwrap();
     let poses = Poses::from_angles(&[(cam.v_mean, 0.4), (cam.v_mean - 0.2, 2.0)], Kind::Float, Device::Cpu);
     let rays = Rays::from_poses(&poses, 24, cam.fov_deg);
-    tch::manual_seed(7);
-    let z = Tensor::randn([3, loaded.generator.cfg.latent_dim as i64], (Kind::Float, Device::Cpu));
+    let z = gdrf_core::nn::mapping::seeded_randn(&[3, loaded.generator.cfg.latent_dim as i64], 7);
     Case { loaded, rays, z }
 }
 

@@ -33,10 +33,9 @@ fn min(t: &Tensor) -> f64 {
 
 /// Builds a small generator in `kind`.
 fn small_generator(kind: Kind, seed: i64) -> (nn::VarStore, Generator) {
-    tch::manual_seed(seed);
     let mut vs = nn::VarStore::new(CPU);
     let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 32, mapping_hidden_dim: 16, ..Default::default() };
-    let g = Generator::new(&vs.root(), &cfg).unwrap();
+    let g = gdrf_core::rng::with_global_seed(seed, || Generator::new(&vs.root(), &cfg).unwrap());
     if kind == Kind::Double {
         vs.double();
     }
@@ -243,9 +242,8 @@ fn regularisers_at_the_exact_initial_state() {
 
 #[test]
 fn saturated_discriminator_and_wrapped_poses() {
-    tch::manual_seed(0);
     let vs = nn::VarStore::new(CPU);
-    let d = Discriminator::new(&vs.root());
+    let d = gdrf_core::rng::with_global_seed(0, || Discriminator::new(&vs.root()));
     tch::no_grad(|| {
         let h = d.head.weight.shallow_clone();
         h.shallow_clone().copy_(&(h * 1e5));

@@ -1,6 +1,7 @@
 //! gdrf-train from the command line: config errors name the key, SIGTERM (what Ctrl-C
 //! and schedulers send) writes a checkpoint of the last finished step and `--resume`
-//! continues from it, an existing run is never overwritten silently, and `plot` draws.
+//! continues from it, an existing run is never overwritten silently, a run directory in
+//! use is refused to a second process, and `plot` draws.
 mod common;
 
 use common::TempDir;
@@ -93,6 +94,18 @@ fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
         assert!(start.elapsed() < Duration::from_secs(120), "no training progress within 2 minutes");
         std::thread::sleep(Duration::from_millis(50));
     }
+    // While it trains, the folder is its own: neither a resume nor --force gets in.
+    for args in [vec!["--resume".into(), run.clone().into_os_string()], {
+        let mut v: Vec<std::ffi::OsString> = vec!["--config".into(), config.clone().into_os_string()];
+        v.extend(["--run-dir".into(), run.clone().into_os_string(), "--force".into()]);
+        v
+    }] {
+        let out = bin().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains("in use by another gdrf-train") && err.contains(&child.id().to_string()), "{err}");
+    }
+    assert!(metrics_lines(&run) >= 3, "--force removed the running run's metrics");
     let status = Command::new("kill").arg("-TERM").arg(child.id().to_string()).status().unwrap();
     assert!(status.success());
     let out = child.wait_with_output().unwrap();

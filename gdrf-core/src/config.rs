@@ -25,8 +25,9 @@ pub struct GeneratorConfig {
     pub deform_scale: f64,
     /// Initial deformation head. 0 (the release): zero weights, so every code starts with
     /// the same shape and the adversarial game alone has to break that symmetry; f > 0:
-    /// frequency_init(f) weights, U(±√(6/H)/f), so shapes differ with the code from the
-    /// first step (an option for small budgets, see docs/training.md).
+    /// frequency_init(f) weights, U(±√(6/H)/f), for the Δx rows (the Δσ row stays zero),
+    /// so shapes differ with the code from the first step (an option for small budgets,
+    /// see docs/training.md).
     pub deform_head_frequency: f64,
 }
 

@@ -10,6 +10,20 @@ use tch::{Device, Kind, Tensor};
 
 const GOLDEN: u64 = 0x9e37_79b9_7f4a_7c15;
 
+/// Serialises every seeded use of libtorch's global generator in this process.
+static GLOBAL_GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Runs `f` with libtorch's global generator seeded to `seed`, holding a process-wide lock
+/// for the whole of `f`. The generator is shared by every thread of the process, so
+/// without the lock two seeded sections (two trainers being built, a seed's code drawn
+/// while a network initialises) could interleave their draws and each get other numbers.
+/// `f` must not itself call `with_global_seed` (the lock is not re-entrant).
+pub fn with_global_seed<T>(seed: i64, f: impl FnOnce() -> T) -> T {
+    let _lock = GLOBAL_GENERATOR.lock().unwrap_or_else(|e| e.into_inner());
+    tch::manual_seed(seed);
+    f()
+}
+
 /// What a draw is for; each purpose gives an independent stream within a step.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Purpose {
@@ -46,6 +60,12 @@ pub enum Purpose {
     InitData = 24,
     InitBatches = 25,
     InitWeights = 26,
+    /// The training previews' importance uniforms (drawn with step 0: every preview alike).
+    PreviewNoise = 27,
+    /// Evaluation renders' importance uniforms, per batch (step = the batch's first image),
+    /// for the samples and for the swaps.
+    EvalNoise = 28,
+    EvalSwapNoise = 29,
 }
 
 /// A source of uniform and normal tensors.
@@ -143,6 +163,31 @@ mod tests {
 
     fn rng(step: u64, p: Purpose) -> StepRng {
         StepRng::new(7, step, p, Kind::Float, Device::Cpu)
+    }
+
+    #[test]
+    fn seeded_sections_of_parallel_threads_do_not_interleave() {
+        // Each section draws, yields, then draws again: without the lock another thread's
+        // reseed between the two draws gives a second draw other than the seed's.
+        let section = |seed: i64| -> Vec<f32> {
+            with_global_seed(seed, || {
+                let a = Tensor::randn([64], (Kind::Float, Device::Cpu));
+                std::thread::yield_now();
+                Vec::try_from(Tensor::cat(&[a, Tensor::randn([64], (Kind::Float, Device::Cpu))], 0)).unwrap()
+            })
+        };
+        let want: Vec<Vec<f32>> = (0..4).map(section).collect();
+        std::thread::scope(|s| {
+            let handles: Vec<_> = (0..4)
+                .map(|seed| {
+                    let want = &want;
+                    s.spawn(move || (0..50).all(|_| section(seed) == want[seed as usize]))
+                })
+                .collect();
+            for (seed, h) in handles.into_iter().enumerate() {
+                assert!(h.join().unwrap(), "seed {seed}: a section drew other numbers");
+            }
+        });
     }
 
     #[test]

@@ -171,10 +171,9 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
         }
         None => {
             eprintln!("no --checkpoint: a randomly initialised generator (seed {init_seed})");
-            tch::manual_seed(init_seed);
             let vs = nn::VarStore::new(dev);
             let cfg = GeneratorConfig::default();
-            let g = Generator::new(&vs.root(), &cfg)?;
+            let g = gdrf_core::rng::with_global_seed(init_seed, || Generator::new(&vs.root(), &cfg))?;
             (vs, g, Header::generator(cfg, Some(CameraConfig::chair())))
         }
     };

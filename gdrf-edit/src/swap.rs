@@ -509,19 +509,16 @@ mod tests {
     use gdrf_core::{CameraConfig, GeneratorConfig};
     use tch::{nn, Device};
 
-    /// Tests that build a generator from libtorch's global generator hold this, so that
-    /// parallel tests cannot interleave their draws and change each other's weights.
-    static GLOBAL_RNG: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
     fn small() -> (nn::VarStore, Generator) {
-        let _lock = GLOBAL_RNG.lock().unwrap_or_else(|e| e.into_inner());
-        tch::manual_seed(5);
         let vs = nn::VarStore::new(Device::Cpu);
         let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
         // A deformation head with weights, so that shapes differ.
-        let mut g = Generator::new(&vs.root(), &cfg).unwrap();
-        tch::no_grad(|| {
-            let _ = g.deform.head.weight.uniform_(-0.05, 0.05);
+        let g = gdrf_core::rng::with_global_seed(5, || {
+            let mut g = Generator::new(&vs.root(), &cfg).unwrap();
+            tch::no_grad(|| {
+                let _ = g.deform.head.weight.uniform_(-0.05, 0.05);
+            });
+            g
         });
         (vs, g)
     }

@@ -216,7 +216,18 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         InvertConfig { coarse_fraction: 0.5, ..d.clone() },
     ));
     methods.push((format!("{tag}, defaults, patience 20"), with_init, InvertConfig { patience: 20, ..d.clone() }));
-    methods.push((format!("{tag}, defaults, bf16"), with_init, InvertConfig { bf16: true, ..d }));
+    methods.push((format!("{tag}, defaults, bf16"), with_init, InvertConfig { bf16: true, ..d.clone() }));
+    // The occupancy grid of the current shape (threshold 5, the best of the CLI
+    // measurements in docs/inversion.md), alone and with half the samples per ray.
+    let grid = InvertConfig { grid: 32, grid_threshold: 5.0, ..d.clone() };
+    let half = (a.samples / 2).max(3);
+    methods.push((format!("{tag}, defaults, grid 32 (threshold 5)"), with_init, grid.clone()));
+    methods.push((
+        format!("{tag}, defaults, grid 32 (threshold 5), {half} samples"),
+        with_init,
+        InvertConfig { num_steps: half, ..grid },
+    ));
+    methods.push((format!("{tag}, defaults, {half} samples"), with_init, InvertConfig { num_steps: half, ..d }));
     eprintln!(
         "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),

@@ -41,6 +41,11 @@ pub struct TrainArgs {
     /// libtorch threads (overrides the config's `threads`; 0 = all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Start the new run's generator (live and EMA) from this generator file, e.g. a shipped
+    /// model's generator.safetensors, instead of random weights; the discriminator starts
+    /// fresh. Sets the config's `init_generator`; the architectures must match.
+    #[arg(long, value_name = "FILE", requires = "config", conflicts_with = "resume")]
+    init_generator: Option<PathBuf>,
     /// No progress bar (one line per logged step instead), e.g. for logs of background runs.
     #[arg(long)]
     quiet: bool,
@@ -74,15 +79,28 @@ pub fn train(a: TrainArgs) -> Result<()> {
         if let Some(t) = a.threads {
             cfg.threads = t;
         }
+        if let Some(g) = &a.init_generator {
+            cfg.init_generator =
+                Some(std::path::absolute(g).with_context(|| format!("--init-generator {}", g.display()))?);
+        }
         cfg.validate()?;
         Ok(cfg)
     };
+    // One process per run directory, taken before --force clears anything.
+    let run_dir = match (&a.config, &a.resume) {
+        (_, Some(dir)) if !dir.is_dir() => {
+            bail!("--resume {}: no such folder (expected a gdrf-train run directory)", dir.display())
+        }
+        (_, Some(dir)) => dir.clone(),
+        (Some(path), None) => a.run_dir.clone().unwrap_or_else(|| default_run_dir(path)),
+        (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
+    };
+    let _lock = run::RunLock::acquire(&run_dir)?;
     let mut trainer = match (&a.config, &a.resume) {
         (Some(path), Some(dir)) => Trainer::resume_with(dir, load(path)?)
             .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
         (Some(path), None) => {
             let cfg = load(path)?;
-            let run_dir = a.run_dir.clone().unwrap_or_else(|| default_run_dir(path));
             if !run::list_checkpoints(&run_dir)?.is_empty() {
                 if !a.force {
                     bail!(

@@ -378,8 +378,7 @@ impl Probe {
         if n < 2 {
             return Err(Error::Invalid(format!("the probe needs at least 2 training images, got {n}")));
         }
-        tch::manual_seed(cfg.seed as i64);
-        let (vs, net) = Self::build(cfg.backbone, device);
+        let (vs, net) = crate::rng::with_global_seed(cfg.seed as i64, || Self::build(cfg.backbone, device));
         let mut opt = nn::Adam::default().build(&vs, cfg.lr)?;
         for epoch in 0..cfg.epochs {
             let mut rng = StepRng::new(cfg.seed, epoch as u64, Purpose::ProbeBatches, Kind::Float, Device::Cpu);

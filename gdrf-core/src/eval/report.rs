@@ -112,8 +112,10 @@ pub struct EvalResult {
     pub swap_side: i64,
 }
 
-/// Renders `z` at `poses` (batches of 16, no jitter).
+/// Renders `z` at `poses` (batches of 16, no jitter; the importance uniforms of the batch
+/// starting at image i come from (seed, i, `noise`)).
 /// `codes`: shape and appearance codes `(N, latent)` each.
+#[allow(clippy::too_many_arguments)]
 fn render_codes(
     g: &Generator,
     cam: &CameraConfig,
@@ -121,6 +123,7 @@ fn render_codes(
     codes: (&Tensor, &Tensor),
     poses: &Poses,
     res: i64,
+    noise: (u64, Purpose),
     tick: &mut dyn FnMut(i64),
 ) -> Result<Tensor> {
     let (zs, za) = codes;
@@ -132,7 +135,13 @@ fn render_codes(
         let b = 16.min(n - i);
         let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), None));
         let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
-        out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &Noise::default()))?.rgb.to_device(Device::Cpu));
+        let u = StepRng::new(noise.0, i as u64, noise.1, Kind::Float, zs.device()).uniform(&[
+            b,
+            res * res,
+            rc.num_steps as i64,
+        ]);
+        let nz = Noise { jitter: None, importance: Some(u) };
+        out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &nz))?.rgb.to_device(Device::Cpu));
         i += b;
         tick(b);
     }
@@ -442,8 +451,10 @@ impl Evaluator {
             done += b;
             progress(&label, done, total);
         };
-        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, &mut tick)?;
-        let swap = render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
+        let seed = self.opts.seed;
+        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, (seed, Purpose::EvalNoise), &mut tick)?;
+        let swap =
+            render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, (seed, Purpose::EvalSwapNoise), &mut tick)?;
         self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)
     }
 }
@@ -482,9 +493,9 @@ pub fn evaluate(
     let loaded = load_generator(generator, device, Kind::Float)?;
     let cam = loaded.header.camera.clone().unwrap_or_default();
     let ev = Evaluator::new(dataset, probe_path, opts, device, progress)?;
-    tch::manual_seed(opts.seed as i64 + 1);
     let rvs = nn::VarStore::new(device);
-    let random = Generator::new(&rvs.root(), &loaded.generator.cfg)?;
+    let random =
+        crate::rng::with_global_seed(opts.seed as i64 + 1, || Generator::new(&rvs.root(), &loaded.generator.cfg))?;
     let model = ev.score(&loaded.generator, &cam, "model", progress)?;
     let rand = ev.score(&random, &cam, "random generator", progress)?;
     let real = &ev.real;

@@ -8,7 +8,7 @@ use tch::{nn, Kind, Tensor};
 pub struct DeformField {
     pub film: Vec<FilmLayer>,
     /// 256 → 4: Δx (3) and raw Δσ (1). Zero weight at init, so Δx starts constant and
-    /// ∂Δx/∂x is exactly zero.
+    /// ∂Δx/∂x is exactly zero (with `deform_head_frequency`, only the Δσ row is zero).
     pub head: Linear,
     hidden: usize,
     correct_scale: f64,
@@ -30,6 +30,13 @@ impl DeformField {
             WeightInit::Zeros
         };
         let head = Linear::new(vs / "head", h, 4, init);
+        if cfg.deform_head_frequency > 0.0 {
+            // Only the Δx rows start non-zero: the Δσ row is scaled by `correct_scale`
+            // (100), and at f = 50 a random Δσ row filled the volume with grey fog.
+            tch::no_grad(|| {
+                let _ = head.weight.narrow(0, 3, 1).zero_();
+            });
+        }
         Self { film, head, hidden: h, correct_scale: cfg.correct_scale, deform_scale: cfg.deform_scale }
     }
 

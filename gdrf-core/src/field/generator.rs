@@ -229,13 +229,16 @@ mod tests {
         let vs = nn::VarStore::new(Device::Cpu);
         let cfg = GeneratorConfig { hidden_dim: 64, deform_head_frequency: 50.0, ..Default::default() };
         let g = Generator::new(&vs.root(), &cfg).unwrap();
-        let w = g.deform.head.weight.detach();
+        // The Δσ row stays zero (Δσ is scaled by 100): every code starts with the same Δσ.
+        assert_eq!(f64::try_from(g.deform.head.weight.get(3).abs().max()).unwrap(), 0.0);
+        let w = g.deform.head.weight.narrow(0, 0, 3).detach();
         let bound = (6.0f64 / 64.0).sqrt() / 50.0;
         assert!(f64::try_from(w.abs().max()).unwrap() <= bound);
         assert!(f64::try_from(w.abs().max()).unwrap() > 0.5 * bound);
         let z = Tensor::randn([2, 256], (Kind::Float, Device::Cpu));
         let x = Tensor::rand([1, 50, 3], (Kind::Float, Device::Cpu)).expand([2, 50, 3], false) - 0.5;
-        let (dx, _) = g.deform.forward(&x, &g.shape_from_z(&z, None));
+        let (dx, dsigma) = g.deform.forward(&x, &g.shape_from_z(&z, None));
+        assert_eq!(f64::try_from((dsigma.get(0) - dsigma.get(1)).abs().max()).unwrap(), 0.0);
         let diff = f64::try_from((dx.get(0) - dx.get(1)).abs().mean(Kind::Float)).unwrap();
         println!("mean |Δx(z₀) − Δx(z₁)| = {diff:.2e}");
         assert!(diff > 1e-3 && diff < 0.1, "mean |Δx(z₀) − Δx(z₁)| = {diff}");

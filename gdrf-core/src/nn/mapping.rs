@@ -59,8 +59,8 @@ pub fn leaky_relu(x: &Tensor) -> Tensor {
 
 /// `randn(shape)` after `manual_seed(seed)` on the CPU generator: the same numbers as
 /// PyTorch's `torch.manual_seed(seed); torch.randn(shape)`, so seeds name the same codes
-/// as in the authors' scripts. Reseeds libtorch's global generator.
+/// as in the authors' scripts. Reseeds libtorch's global generator (under
+/// [`with_global_seed`](crate::rng::with_global_seed)'s lock).
 pub fn seeded_randn(shape: &[i64], seed: i64) -> Tensor {
-    tch::manual_seed(seed);
-    Tensor::randn(shape, (Kind::Float, Device::Cpu))
+    crate::rng::with_global_seed(seed, || Tensor::randn(shape, (Kind::Float, Device::Cpu)))
 }

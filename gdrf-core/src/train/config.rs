@@ -212,6 +212,13 @@ pub struct TrainConfig {
     /// libtorch threads (0 = all cores).
     #[serde(default)]
     pub threads: usize,
+    /// A generator file (a run's `generator.safetensors` export or a shipped model's) whose
+    /// weights start both the live and the EMA generator of a new run, e.g. to go on
+    /// training a shipped model under another schedule; the discriminator and the
+    /// optimisers start fresh. Its `[generator]` must equal this config's. Relative to the
+    /// config file's folder; not read on resume (the checkpoint holds the weights).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init_generator: Option<std::path::PathBuf>,
     #[serde(default)]
     pub generator: GeneratorConfig,
     #[serde(default)]
@@ -274,6 +281,7 @@ impl TrainConfig {
         cfg.data.poses = cfg.data.poses.map(|p| lexical_join(base, &p));
         cfg.data.cache_dir = cfg.data.cache_dir.map(|p| lexical_join(base, &p));
         cfg.eval.probe = cfg.eval.probe.map(|p| lexical_join(base, &p));
+        cfg.init_generator = cfg.init_generator.map(|p| lexical_join(base, &p));
         cfg.validate()?;
         Ok(cfg)
     }

@@ -169,19 +169,42 @@ pub struct Trainer {
 }
 
 impl Trainer {
-    /// A fresh run: networks initialised from the run seed. Nothing is written yet.
+    /// A fresh run: networks initialised from the run seed, the generators then from
+    /// `init_generator` if the config names one. Nothing is written yet.
     pub fn new(cfg: TrainConfig, run_dir: &Path) -> Result<Self> {
+        let t = Self::seeded(cfg, run_dir)?;
+        if let Some(path) = &t.cfg.init_generator {
+            let loaded = checkpoint::load_generator(path, t.device, tch::Kind::Float)
+                .map_err(|e| Error::Config(format!("init_generator: {e}")))?;
+            if loaded.generator.cfg != t.cfg.generator {
+                return Err(Error::Config(format!(
+                    "init_generator {}: its [generator] ({:?}) differs from the config's ({:?}); a run starts only from a generator of the same architecture",
+                    path.display(),
+                    loaded.generator.cfg,
+                    t.cfg.generator
+                )));
+            }
+            copy_vars(&t.gvs, &loaded.vs);
+            copy_vars(&t.evs, &loaded.vs);
+        }
+        Ok(t)
+    }
+
+    /// Networks initialised from the run seed alone.
+    fn seeded(cfg: TrainConfig, run_dir: &Path) -> Result<Self> {
         cfg.validate()?;
         let device = crate::device::select(&cfg.device)?;
         // The initial weights come from libtorch's generator, seeded once here (as the
         // release does before building its models); training draws never touch it.
-        tch::manual_seed(cfg.seed as i64);
-        let gvs = nn::VarStore::new(device);
-        let generator = Generator::new(&gvs.root(), &cfg.generator)?;
-        let dvs = nn::VarStore::new(device);
-        let disc = crate::disc::build(&dvs.root(), &cfg.discriminator)?;
-        let evs = nn::VarStore::new(device);
-        let ema_generator = Generator::new(&evs.root(), &cfg.generator)?;
+        let (gvs, generator, dvs, disc, evs, ema_generator) = crate::rng::with_global_seed(cfg.seed as i64, || {
+            let gvs = nn::VarStore::new(device);
+            let generator = Generator::new(&gvs.root(), &cfg.generator)?;
+            let dvs = nn::VarStore::new(device);
+            let disc = crate::disc::build(&dvs.root(), &cfg.discriminator)?;
+            let evs = nn::VarStore::new(device);
+            let ema_generator = Generator::new(&evs.root(), &cfg.generator)?;
+            Ok::<_, Error>((gvs, generator, dvs, disc, evs, ema_generator))
+        })?;
         copy_vars(&evs, &gvs);
         let o = &cfg.optim;
         let adam_g = Adam::new(&gvs, o.beta1, o.beta2, o.eps);
@@ -257,7 +280,7 @@ impl Trainer {
         if let Some(d) = device {
             cfg.device = d.to_string();
         }
-        let mut t = Self::new(cfg, run_dir)?;
+        let mut t = Self::seeded(cfg, run_dir)?;
         let split = |prefix: &str| -> BTreeMap<String, Tensor> {
             ckpt.tensors
                 .iter()

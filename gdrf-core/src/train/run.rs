@@ -7,6 +7,7 @@
 //! RUN_DIR/generator.safetensors          EMA generator of the latest checkpoint
 //! RUN_DIR/metrics.jsonl                  one JSON object per logged step or event
 //! RUN_DIR/samples/step-NNNNNNNN-{samples,swap,template}.png and latest-*.png
+//! RUN_DIR/.lock                          held by the process training in RUN_DIR
 //! ```
 use crate::{Error, Result};
 use std::io::Write;
@@ -20,6 +21,49 @@ pub const SAMPLES: &str = "samples";
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
     move |source| Error::Io { path: path.to_path_buf(), source }
+}
+
+pub const LOCK: &str = ".lock";
+
+/// Exclusive use of a run directory by one process, held until dropped (or the process
+/// ends, however it ends: the operating system releases the lock). Two trainers writing
+/// into one folder would interleave checkpoints and metrics; a second `gdrf-train` on a
+/// folder in use — also `--force` while the old process is still exiting — is refused.
+#[derive(Debug)]
+pub struct RunLock {
+    _file: std::fs::File,
+}
+
+impl RunLock {
+    /// Takes the lock on `run_dir` (creating the folder), or an error naming the folder and
+    /// the process that holds it.
+    pub fn acquire(run_dir: &Path) -> Result<Self> {
+        std::fs::create_dir_all(run_dir).map_err(io(run_dir))?;
+        let path = run_dir.join(LOCK);
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(io(&path))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let holder = std::fs::read_to_string(&path).unwrap_or_default();
+                let holder = holder.trim();
+                let by = if holder.is_empty() { String::new() } else { format!(" (process {holder})") };
+                return Err(Error::Invalid(format!(
+                    "{} is in use by another gdrf-train{by}; wait for it to finish or stop it first",
+                    run_dir.display()
+                )));
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(io(&path)(e)),
+        }
+        file.set_len(0).map_err(io(&path))?;
+        write!(file, "{}", std::process::id()).map_err(io(&path))?;
+        Ok(Self { _file: file })
+    }
 }
 
 /// File name of the checkpoint after `step` steps.
@@ -96,4 +140,23 @@ pub fn truncate_metrics(run_dir: &Path, step: i64) -> Result<()> {
         .map(|v| v.to_string() + "\n")
         .collect();
     crate::checkpoint::write_atomic(&path, kept.concat().as_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_run_directory_is_locked_while_in_use_and_released_on_drop() {
+        let dir = std::env::temp_dir().join(format!("gdrf-lock-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let held = RunLock::acquire(&dir).unwrap();
+        let pid = std::process::id().to_string();
+        assert_eq!(std::fs::read_to_string(dir.join(LOCK)).unwrap(), pid);
+        let e = RunLock::acquire(&dir).unwrap_err().to_string();
+        assert!(e.contains("in use by another gdrf-train") && e.contains(&pid), "{e}");
+        drop(held);
+        RunLock::acquire(&dir).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

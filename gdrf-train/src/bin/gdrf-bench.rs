@@ -116,9 +116,8 @@ fn write_report(out_dir: &Path, name: &str, doc: &serde_json::Value) -> Result<(
 #[allow(clippy::too_many_arguments)]
 fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> Result<serde_json::Value> {
     let threads = device::init_threads();
-    tch::manual_seed(0);
     let gvs = nn::VarStore::new(tch::Device::Cpu);
-    let gen = Generator::new(&gvs.root(), &GeneratorConfig::default())?;
+    let gen = gdrf_core::rng::with_global_seed(0, || Generator::new(&gvs.root(), &GeneratorConfig::default()))?;
     let mut dvs = nn::VarStore::new(tch::Device::Cpu);
     let disc = Discriminator::new(&dvs.root());
     let camera = CameraConfig::chair();
