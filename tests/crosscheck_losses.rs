@@ -135,14 +135,24 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let noise = Noise { jitter: Some(t["d_jitter"].shallow_clone()), importance: Some(t["d_imp"].shallow_clone()) };
     let fake = FakeBatch { latents: &latents, poses: &poses, z: Some(z), resolution: res, regions, noise: &noise };
     let real = t["real"].detach().set_requires_grad(true);
+    let rendered = tch::no_grad(|| renderer.render_regions(&latents, &poses, res, regions, &noise)).unwrap().0;
+    rep.check("D step's fake images", &rendered, &t["expected.d_fake_img"]);
     let dl = discriminator_pass(&renderer, &disc, &real, Some(&t["real_pose"]), &fake, at, &cfg).unwrap();
     check_terms(&mut rep, &dl, &t, "d");
     rep.check("D total", &dl.total, &t["expected.d_total"]);
     let grad_real = Tensor::run_backward(&[&dl.total], &[&real], true, false).remove(0);
     rep.check("∂D total/∂real images (R1 path)", &grad_real, &t["expected.d_grad_real"]);
     dl.total.backward();
-    let (n, e) = worst_grad(&dvs, &t, "d_grad.disc.");
-    rep.rows.push((format!("∂D total/∂D params (worst {n})"), e));
+    // Judged against the same gradients in float64 (from the same inputs and weights):
+    // PyTorch's own float32 values of these are up to 1e-3 off them on some CPUs.
+    let (n, e) = worst_grad(&dvs, &t, "d_grad64.disc.");
+    rep.rows.push((format!("∂D total/∂D params vs float64 (worst {n})"), e));
+    let pytorch = dvs
+        .variables()
+        .keys()
+        .map(|k| rel_err(&t[&format!("expected.d_grad.disc.{k}")], &t[&format!("expected.d_grad64.disc.{k}")]))
+        .fold(0.0, f64::max);
+    println!("(PyTorch's own {dtype} ∂D total/∂D params vs float64: {pytorch:.3e})");
     rep.finish();
 }
 

@@ -8,6 +8,7 @@ Writes DIR/model.safetensors (a gdrf checkpoint), DIR/case.safetensors (inputs a
 expected outputs) and DIR/case.json (scalar settings).
 """
 import argparse
+import copy
 import json
 import os
 import sys
@@ -242,6 +243,21 @@ def losses_case(out, dtype, seed):
     e["d_grad_real"] = g_real[0]
     for (name, p), g in zip(disc.named_parameters(), g_real[1:]):
         e["d_grad.disc." + L.disc_name_to_gdrf(name)] = g if g is not None else torch.zeros_like(p)
+    e["d_fake_img"] = fake
+    # The same gradients in float64 from the same inputs and weights: the exact value a
+    # float32 result is judged against. (On some CPUs PyTorch's own float32 gradients of
+    # this loss are 1e-3 off it, e.g. 8e-4 at layers.5.conv2.weight on an AVX2-only CPU,
+    # while a recomputation in a fresh process lands within 1e-6.)
+    disc64 = copy.deepcopy(disc).double()
+    real64 = t["real"].double().requires_grad_(True)
+    lr, _, pr = disc64(real64, s["alpha"])
+    lf, _, pf = disc64(fake.double(), s["alpha"])
+    pose64 = torch.cat([t["pitch"], t["yaw"]], 1).double()
+    total64 = (F.softplus(-lr).mean() + F.softplus(lf).mean() + L.r1(lr, real64)
+               + 15 * (L.pose_loss(pf, pose64) + L.pose_loss(pr, t["real_pose"].double())))
+    g64 = torch.autograd.grad(total64, list(disc64.parameters()), allow_unused=True)
+    for (name, p), g in zip(disc64.named_parameters(), g64):
+        e["d_grad64.disc." + L.disc_name_to_gdrf(name)] = g if g is not None else torch.zeros_like(p)
 
     tensors = {k_: v.detach().contiguous() for k_, v in t.items()}
     tensors.update({"expected." + k_: v.detach().contiguous() for k_, v in e.items()})
