@@ -13,15 +13,39 @@ const GOLDEN: u64 = 0x9e37_79b9_7f4a_7c15;
 /// Serialises every seeded use of libtorch's global generator in this process.
 static GLOBAL_GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-/// Runs `f` with libtorch's global generator seeded to `seed`, holding a process-wide lock
-/// for the whole of `f`. The generator is shared by every thread of the process, so
-/// without the lock two seeded sections (two trainers being built, a seed's code drawn
-/// while a network initialises) could interleave their draws and each get other numbers.
-/// `f` must not itself call `with_global_seed` (the lock is not re-entrant).
-pub fn with_global_seed<T>(seed: i64, f: impl FnOnce() -> T) -> T {
+thread_local! {
+    /// Whether this thread holds `GLOBAL_GENERATOR` (so that nested sections go through).
+    static HOLDS_GLOBAL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` holding the process-wide lock on libtorch's global generator (re-entrant on
+/// one thread). Every draw the library makes from that generator (network construction,
+/// seeded codes) goes through here: the generator is shared by every thread of the
+/// process, and a draw from another thread inside a seeded section changes its numbers.
+pub fn with_global_generator<T>(f: impl FnOnce() -> T) -> T {
+    if HOLDS_GLOBAL.with(|h| h.get()) {
+        return f();
+    }
     let _lock = GLOBAL_GENERATOR.lock().unwrap_or_else(|e| e.into_inner());
-    tch::manual_seed(seed);
+    struct Release;
+    impl Drop for Release {
+        fn drop(&mut self) {
+            HOLDS_GLOBAL.with(|h| h.set(false));
+        }
+    }
+    HOLDS_GLOBAL.with(|h| h.set(true));
+    let _release = Release;
     f()
+}
+
+/// Runs `f` with libtorch's global generator seeded to `seed`, under
+/// [`with_global_generator`]'s lock: no other thread's seeding or drawing (two trainers
+/// being built, a seed's code drawn while a network initialises) lands in between.
+pub fn with_global_seed<T>(seed: i64, f: impl FnOnce() -> T) -> T {
+    with_global_generator(|| {
+        tch::manual_seed(seed);
+        f()
+    })
 }
 
 /// What a draw is for; each purpose gives an independent stream within a step.
@@ -177,6 +201,8 @@ mod tests {
             })
         };
         let want: Vec<Vec<f32>> = (0..4).map(section).collect();
+        // Re-entrant on one thread: a network built inside a seeded section does not deadlock.
+        assert_eq!(with_global_seed(0, || with_global_generator(|| section(0))), want[0]);
         std::thread::scope(|s| {
             let handles: Vec<_> = (0..4)
                 .map(|seed| {

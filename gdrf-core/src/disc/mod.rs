@@ -215,8 +215,13 @@ impl Discriminator {
         Self::with_config(vs, &DiscConfig::default()).expect("the release's widths are valid")
     }
 
-    /// A discriminator of the configured widths (PyTorch's default conv init).
+    /// A discriminator of the configured widths (PyTorch's default conv init, drawn under
+    /// [`crate::rng::with_global_generator`]).
     pub fn with_config(vs: &nn::Path, cfg: &DiscConfig) -> Result<Self> {
+        crate::rng::with_global_generator(|| Self::create(vs, cfg))
+    }
+
+    fn create(vs: &nn::Path, cfg: &DiscConfig) -> Result<Self> {
         cfg.validate()?;
         let c = &cfg.channels;
         let from_rgb = c.iter().enumerate().map(|(i, &c)| Conv::new(vs / "from_rgb" / i, 3, c, 1, 0)).collect();

@@ -167,8 +167,13 @@ impl std::fmt::Debug for ProjectedDiscriminator {
 impl ProjectedDiscriminator {
     /// Builds the trained and the fixed parts under `vs` (the fixed projections are
     /// non-trainable variables: they are saved with the discriminator) and loads the
-    /// frozen feature network from the config's weights file onto `vs`'s device.
+    /// frozen feature network from the config's weights file onto `vs`'s device. The
+    /// random parts are drawn under [`crate::rng::with_global_generator`].
     pub fn new(vs: &nn::Path, cfg: &ProjectedConfig) -> Result<Self> {
+        crate::rng::with_global_generator(|| Self::create(vs, cfg))
+    }
+
+    fn create(vs: &nn::Path, cfg: &ProjectedConfig) -> Result<Self> {
         cfg.validate()?;
         let path = cfg.weights_path();
         if !path.is_file() {

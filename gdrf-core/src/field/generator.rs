@@ -74,8 +74,13 @@ pub struct Generator {
 }
 
 impl Generator {
-    /// Creates the networks under `vs` with the release's initialisation.
+    /// Creates the networks under `vs` with the release's initialisation (drawn from
+    /// libtorch's global generator under [`crate::rng::with_global_generator`]).
     pub fn new(vs: &nn::Path, cfg: &GeneratorConfig) -> Result<Self> {
+        crate::rng::with_global_generator(|| Self::create(vs, cfg))
+    }
+
+    fn create(vs: &nn::Path, cfg: &GeneratorConfig) -> Result<Self> {
         cfg.validate()?;
         let (z, h, m) = (cfg.latent_dim, cfg.hidden_dim, cfg.mapping_hidden_dim);
         Ok(Self {

@@ -177,8 +177,12 @@ pub struct Initialiser {
 impl Initialiser {
     pub fn new(device: Device, mapping_hidden: i64, resolution: i64) -> Self {
         let vs = nn::VarStore::new(device);
-        let net = tch::vision::resnet::resnet34_no_final_layer(&(vs.root() / "resnet"));
-        let head = nn::linear(vs.root() / "head", 512, mapping_hidden + 3, Default::default());
+        // tch's layers draw their start from libtorch's global generator.
+        let (net, head) = crate::rng::with_global_generator(|| {
+            let net = tch::vision::resnet::resnet34_no_final_layer(&(vs.root() / "resnet"));
+            let head = nn::linear(vs.root() / "head", 512, mapping_hidden + 3, Default::default());
+            (net, head)
+        });
         Self { vs, net, head, mapping_hidden, resolution }
     }
 
