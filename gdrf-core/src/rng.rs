@@ -10,7 +10,7 @@ use tch::{Device, Kind, Tensor};
 
 const GOLDEN: u64 = 0x9e37_79b9_7f4a_7c15;
 
-/// Serialises every seeded use of libtorch's global generator in this process.
+/// Serialises every use of libtorch's global generator in this process.
 static GLOBAL_GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 thread_local! {
@@ -84,12 +84,6 @@ pub enum Purpose {
     InitData = 24,
     InitBatches = 25,
     InitWeights = 26,
-    /// The training previews' importance uniforms (drawn with step 0: every preview alike).
-    PreviewNoise = 27,
-    /// Evaluation renders' importance uniforms, per batch (step = the batch's first image),
-    /// for the samples and for the swaps.
-    EvalNoise = 28,
-    EvalSwapNoise = 29,
 }
 
 /// A source of uniform and normal tensors.

@@ -112,10 +112,8 @@ pub struct EvalResult {
     pub swap_side: i64,
 }
 
-/// Renders `z` at `poses` (batches of 16, no jitter; the importance uniforms of the batch
-/// starting at image i come from (seed, i, `noise`)).
-/// `codes`: shape and appearance codes `(N, latent)` each.
-#[allow(clippy::too_many_arguments)]
+/// Renders `z` at `poses` (batches of 16, no jitter, importance samples at the midpoints:
+/// no random numbers). `codes`: shape and appearance codes `(N, latent)` each.
 fn render_codes(
     g: &Generator,
     cam: &CameraConfig,
@@ -123,7 +121,6 @@ fn render_codes(
     codes: (&Tensor, &Tensor),
     poses: &Poses,
     res: i64,
-    noise: (u64, Purpose),
     tick: &mut dyn FnMut(i64),
 ) -> Result<Tensor> {
     let (zs, za) = codes;
@@ -135,12 +132,7 @@ fn render_codes(
         let b = 16.min(n - i);
         let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), None));
         let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
-        let u = StepRng::new(noise.0, i as u64, noise.1, Kind::Float, zs.device()).uniform(&[
-            b,
-            res * res,
-            rc.num_steps as i64,
-        ]);
-        let nz = Noise { jitter: None, importance: Some(u) };
+        let nz = Noise::midpoints(b, res * res, rc.num_steps as i64, zs.device());
         out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &nz))?.rgb.to_device(Device::Cpu));
         i += b;
         tick(b);
@@ -451,10 +443,8 @@ impl Evaluator {
             done += b;
             progress(&label, done, total);
         };
-        let seed = self.opts.seed;
-        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, (seed, Purpose::EvalNoise), &mut tick)?;
-        let swap =
-            render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, (seed, Purpose::EvalSwapNoise), &mut tick)?;
+        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, &mut tick)?;
+        let swap = render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
         self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)
     }
 }

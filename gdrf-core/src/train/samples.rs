@@ -43,16 +43,8 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
     let k = t.cfg.samples.swap.min(z.size()[0]);
     let pose = |yaw: f64| Poses::from_angles(&[(cam.v_mean, cam.h_mean + yaw)], Kind::Float, t.device);
     let first_yaw = t.cfg.samples.yaws[0];
-    // Fixed importance uniforms (no jitter): previews are a function of the EMA weights
-    // alone, and drawing them never touches libtorch's global generator.
-    let noise = Noise {
-        jitter: None,
-        importance: Some(StepRng::new(t.cfg.seed, 0, Purpose::PreviewNoise, Kind::Float, t.device).uniform(&[
-            1,
-            res * res,
-            stage.num_steps as i64,
-        ])),
-    };
+    // No random numbers: previews are a function of the EMA weights alone.
+    let noise = Noise::midpoints(1, res * res, stage.num_steps as i64, t.device);
     tch::no_grad(|| {
         let render = |lat: &Latents, i: i64, yaw: f64, opts: FieldOptions| -> Result<Tensor> {
             let mut r = Renderer::new(gen, cam, &rc)?;
