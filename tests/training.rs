@@ -239,6 +239,37 @@ fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
 }
 
 #[test]
+fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
+    let dir = TempDir::new("train-d-only");
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.stages[0].g_lr = Some(0.0);
+    let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    let (g0, e0, d0) = (params(&t.gvs), params(&t.evs), params(&t.dvs));
+    let reports = run_steps(&mut t, 3);
+    assert!(same_params(&params(&t.gvs), &g0), "the generator moved in a discriminator-only stage");
+    assert!(same_params(&params(&t.evs), &e0), "the EMA moved in a discriminator-only stage");
+    assert!(!same_params(&params(&t.dvs), &d0), "the discriminator did not train");
+    assert_eq!(t.ema.updates, 0);
+    for r in &reports {
+        assert_eq!(r.lr_g, 0.0);
+        assert!(r.g_total.is_nan() && r.g_terms.is_empty() && !r.g_skipped, "step {}", r.step);
+        assert!(r.d_total.is_finite() && !r.d_skipped, "step {}", r.step);
+    }
+    assert_eq!(t.progress.skipped_steps, 0);
+    // The metrics carry no generator figures for those steps.
+    let metrics = std::fs::read_to_string(dir.path("run").join(run::METRICS)).unwrap();
+    let first: serde_json::Value = serde_json::from_str(metrics.lines().next().unwrap()).unwrap();
+    assert_eq!(first["g_total"], serde_json::Value::Null, "{first}");
+    // The next stage (g_lr 3e-4) trains both.
+    let r = run_steps(&mut t, 1);
+    assert_eq!(r[0].lr_g, 3e-4);
+    assert!(r[0].g_total.is_finite());
+    assert!(!same_params(&params(&t.gvs), &g0));
+    assert_eq!(t.ema.updates, 1);
+}
+
+#[test]
 fn a_non_finite_state_is_never_checkpointed() {
     let dir = TempDir::new("train-nan-ckpt");
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();

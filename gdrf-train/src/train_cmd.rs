@@ -183,16 +183,18 @@ pub fn train(a: TrainArgs) -> Result<()> {
         let ips = r.batch_size as f64 / r.seconds.max(1e-9);
         let ips = *rate.insert(rate.map_or(ips, |old| 0.9 * old + 0.1 * ips));
         let term = |k: &str| r.g_terms.iter().chain(&r.d_terms).find(|t| t.0 == k).map_or(f64::NAN, |t| t.1);
+        let g = if r.lr_g == 0.0 {
+            "G off (g_lr 0: the discriminator trains alone)".to_string()
+        } else {
+            format!("G adv {:.3} pose {:.3} reg {:.3}", term("g_adv"), term("g_pose"), term("reg_normal"))
+        };
         let msg = format!(
-            "{}² α {:.2} | {ips:.1} img/s | D {:.3} (real {:.3} fake {:.3}) | G adv {:.3} pose {:.3} reg {:.3}{}",
+            "{}² α {:.2} | {ips:.1} img/s | D {:.3} (real {:.3} fake {:.3}) | {g}{}",
             r.resolution,
             r.alpha,
             r.d_total,
             term("d_real"),
             term("d_fake"),
-            term("g_adv"),
-            term("g_pose"),
-            term("reg_normal"),
             if p.skipped_steps > 0 {
                 format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks)
             } else {

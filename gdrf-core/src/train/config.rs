@@ -29,7 +29,10 @@ pub struct Stage {
     /// at the same sample depths).
     #[serde(default = "one")]
     pub regions: i64,
-    /// Learning rates of this stage (default: `[optim]`'s).
+    /// Learning rates of this stage (default: `[optim]`'s). `g_lr = 0` trains the
+    /// discriminator alone: the generator step is skipped (the generator and its EMA stay
+    /// as they are), which warms a fresh discriminator up against a generator loaded with
+    /// `init_generator` before the game resumes.
     #[serde(default)]
     pub g_lr: Option<f64>,
     #[serde(default)]
@@ -437,11 +440,17 @@ impl TrainConfig {
                     st.resolution
                 )));
             }
-            for (k, v) in [("g_lr", st.g_lr), ("d_lr", st.d_lr)] {
-                if let Some(v) = v {
-                    if !(v > 0.0 && v.is_finite()) {
-                        return Err(cfg_err(format!("{} is {v}, expected a positive number", key(k))));
-                    }
+            if let Some(v) = st.g_lr {
+                if !(v >= 0.0 && v.is_finite()) {
+                    return Err(cfg_err(format!(
+                        "{} is {v}, expected a positive number (or 0: the discriminator trains alone)",
+                        key("g_lr")
+                    )));
+                }
+            }
+            if let Some(v) = st.d_lr {
+                if !(v > 0.0 && v.is_finite()) {
+                    return Err(cfg_err(format!("{} is {v}, expected a positive number", key("d_lr"))));
                 }
             }
         }
@@ -595,6 +604,15 @@ path = "data/x"
         let odd = MIN.replace("batch_split = 2", "batch_split = 4") + "[loss]\ndiversity_weight = 1.0\n";
         let e = TrainConfig::from_toml(&odd, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("loss.diversity_weight") && e.contains("stages[2].batch_split"), "{e}");
+        // A stage's g_lr may be 0 (the discriminator trains alone), never negative; its d_lr not 0.
+        let d_only = TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "g_lr = 0.0"), Path::new("")).unwrap();
+        assert_eq!(d_only.learning_rates(200), (0.0, 2e-4));
+        let e =
+            TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "g_lr = -1e-4"), Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].g_lr") && e.contains("or 0"), "{e}");
+        let e =
+            TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "d_lr = 0.0"), Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].d_lr") && e.contains("positive"), "{e}");
         let unordered = MIN.replace("from_step = 200", "from_step = 50");
         let e = TrainConfig::from_toml(&unordered, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].from_step"), "{e}");

@@ -375,7 +375,12 @@ impl Trainer {
         let real_poses = real_poses.map(|p| p.to_device(self.device));
 
         let d = self.discriminator_step(&stage, at, &real, real_poses.as_ref(), d_lr)?;
-        let g = self.generator_step(&stage, at, g_lr, &real, real_poses.as_ref())?;
+        let g = if g_lr > 0.0 {
+            self.generator_step(&stage, at, g_lr, &real, real_poses.as_ref())?
+        } else {
+            // A discriminator-only stage: no render, no gradient, no EMA update.
+            Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false }
+        };
 
         let p = &mut self.progress;
         p.step += 1;
