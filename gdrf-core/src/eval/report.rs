@@ -71,6 +71,14 @@ impl Calibrated {
     }
 }
 
+/// The yaw rotation found for the model, the real images and the random generator (degrees).
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameOffsets {
+    pub model: f64,
+    pub real: f64,
+    pub random: f64,
+}
+
 #[derive(Debug, Serialize)]
 pub struct ClassTable {
     pub factor: String,
@@ -99,6 +107,10 @@ pub struct EvalResult {
     pub shape_follows: Calibrated,
     pub appearance_follows: Calibrated,
     pub pose_yaw_error_deg: Calibrated,
+    /// After turning each distribution's yaw by one rotation (see [`PoseErrors::yaw_in_frame`]).
+    pub pose_yaw_error_in_frame_deg: Calibrated,
+    /// That rotation, per distribution.
+    pub yaw_frame_offset_deg: FrameOffsets,
     pub pose_pitch_error_deg: Calibrated,
     pub probe_held_out_accuracy: Vec<f64>,
     pub seconds: f64,
@@ -205,12 +217,57 @@ fn swap_scores(pred: &Predictions, hist: &Tensor, k: i64) -> (f64, f64, Vec<Verd
     (rate(s_hit, s_n), rate(a_hit, a_n), verdicts)
 }
 
-fn pose_errors(pred: &Predictions, truth: &Tensor) -> (f64, f64) {
+/// The probe's pose errors over a set of images, in degrees.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseErrors {
+    /// Mean |yaw error| (wrapped to ±180°).
+    pub yaw: f64,
+    /// Mean |yaw error| in the generator's own frame: after the one rotation about the up
+    /// axis (`yaw_offset`) that makes it smallest. It tells images that do not turn with the
+    /// camera (both errors high) from images that turn but whose yaw zero is not the data's
+    /// (this one low). With yaw drawn from the full circle, only the discriminator's pose
+    /// head on real images with known poses ties the two zeros together; without dataset
+    /// poses nothing does, and this is the fair pose score.
+    pub yaw_in_frame: f64,
+    /// The rotation: probe yaw − rendered yaw, wrapped to [−180°, 180°).
+    pub yaw_offset: f64,
+    /// Mean |pitch error| (pitch is tied to the world's up axis: not aligned).
+    pub pitch: f64,
+}
+
+fn wrap_deg(x: f64) -> f64 {
+    (x + 180.0).rem_euclid(360.0) - 180.0
+}
+
+/// The offset c minimising the mean of |wrap(dᵢ − c)| over yaw differences `d` (degrees),
+/// and that mean. The mean is piecewise linear in c with convex kinks only at the dᵢ (at
+/// dᵢ ± 180° the wrap makes concave ones), so its minimum is at one of them: trying each is
+/// exact, and O(n²) is nothing at evaluation sizes.
+fn best_yaw_offset(d: &[f64]) -> (f64, f64) {
+    let mean_at = |c: f64| d.iter().map(|&x| wrap_deg(x - c).abs()).sum::<f64>() / d.len() as f64;
+    let mut best = (0.0, mean_at(0.0));
+    for &c in d {
+        let m = mean_at(c);
+        if m < best.1 {
+            best = (wrap_deg(c), m);
+        }
+    }
+    best
+}
+
+fn pose_errors(pred: &Predictions, truth: &Tensor) -> PoseErrors {
     let deg = 180.0 / std::f64::consts::PI;
-    let t = truth.to_kind(Kind::Float).to_device(Device::Cpu);
-    let dy = ((pred.poses.select(1, 1) - t.select(1, 1)) * deg + 180.0).remainder(360.0) - 180.0;
-    let dp = (pred.poses.select(1, 0) - t.select(1, 0)) * deg;
-    (f64::try_from(dy.abs().mean(Kind::Double)).unwrap(), f64::try_from(dp.abs().mean(Kind::Double)).unwrap())
+    let t = truth.to_kind(Kind::Double).to_device(Device::Cpu);
+    let p = pred.poses.to_kind(Kind::Double).to_device(Device::Cpu);
+    let dy: Vec<f64> = Vec::try_from((p.select(1, 1) - t.select(1, 1)) * deg).unwrap();
+    let dp = (p.select(1, 0) - t.select(1, 0)) * deg;
+    let (yaw_offset, yaw_in_frame) = best_yaw_offset(&dy);
+    PoseErrors {
+        yaw: dy.iter().map(|&x| wrap_deg(x).abs()).sum::<f64>() / dy.len() as f64,
+        yaw_in_frame,
+        yaw_offset,
+        pitch: f64::try_from(dp.abs().mean(Kind::Double)).unwrap(),
+    }
 }
 
 fn coverage(pred: &Tensor, reference: &[Vec<f64>]) -> (f64, Vec<Vec<f64>>) {
@@ -234,8 +291,7 @@ pub struct Scores {
     pub histograms: Vec<Vec<f64>>,
     pub shape_follows: f64,
     pub appearance_follows: f64,
-    pub yaw_error_deg: f64,
-    pub pitch_error_deg: f64,
+    pub pose: PoseErrors,
     /// Up to 24 of the images `(n, 3, S, S)`.
     pub samples: Tensor,
     /// The swap matrix `(k², 3, S, S)` and its verdicts.
@@ -337,7 +393,7 @@ impl Evaluator {
         };
         ev.real.coverage_tv = coverage(&p_real.classes, &ev.reference).0;
         ev.real.histograms = class_histograms(&p_real.classes);
-        (ev.real.yaw_error_deg, ev.real.pitch_error_deg) = pose_errors(&p_real, &held_t.poses);
+        ev.real.pose = pose_errors(&p_real, &held_t.poses);
         Ok(ev)
     }
 
@@ -395,7 +451,7 @@ impl Evaluator {
             None => self.predict(images)?,
         };
         let (tv, hist) = coverage(&p.classes, &self.reference);
-        let (yaw, pitch) = pose_errors(&p, poses);
+        let pose = pose_errors(&p, poses);
         let ps = self.predict(swap)?;
         let (shape_follows, appearance_follows, verdicts) = swap_scores(&ps, &colour_histograms(swap), k);
         Ok(Scores {
@@ -406,8 +462,7 @@ impl Evaluator {
             histograms: hist,
             shape_follows,
             appearance_follows,
-            yaw_error_deg: yaw,
-            pitch_error_deg: pitch,
+            pose,
             samples: images.narrow(0, 0, images.size()[0].min(24)),
             swap_images: swap.shallow_clone(),
             swap_verdicts: verdicts,
@@ -460,8 +515,7 @@ impl Scores {
             histograms: Vec::new(),
             shape_follows: f64::NAN,
             appearance_follows: f64::NAN,
-            yaw_error_deg: f64::NAN,
-            pitch_error_deg: f64::NAN,
+            pose: PoseErrors { yaw: f64::NAN, yaw_in_frame: f64::NAN, yaw_offset: f64::NAN, pitch: f64::NAN },
             samples: none.shallow_clone(),
             swap_images: none,
             swap_verdicts: Vec::new(),
@@ -527,8 +581,14 @@ pub fn evaluate(
         classes,
         shape_follows: c(|s| s.shape_follows),
         appearance_follows: c(|s| s.appearance_follows),
-        pose_yaw_error_deg: c(|s| s.yaw_error_deg),
-        pose_pitch_error_deg: c(|s| s.pitch_error_deg),
+        pose_yaw_error_deg: c(|s| s.pose.yaw),
+        pose_yaw_error_in_frame_deg: c(|s| s.pose.yaw_in_frame),
+        yaw_frame_offset_deg: FrameOffsets {
+            model: model.pose.yaw_offset,
+            real: real.pose.yaw_offset,
+            random: rand.pose.yaw_offset,
+        },
+        pose_pitch_error_deg: c(|s| s.pose.pitch),
         probe_held_out_accuracy: ev.probe.header.held_out.accuracy.clone(),
         seconds: start.elapsed().as_secs_f64(),
         samples: model.samples,
@@ -548,6 +608,11 @@ pub fn summary(r: &EvalResult) -> String {
     for (name, c) in score_rows(r) {
         s += &format!("{name:<26} {:>10.4} {:>10.4} {:>10.4} {:>9.2}\n", c.model, c.real, c.random, c.position);
     }
+    let o = &r.yaw_frame_offset_deg;
+    s += &format!(
+        "yaw in its own frame: turned by (probe − rendered) {:.1}° model, {:.1}° real, {:.1}° random\n",
+        o.model, o.real, o.random
+    );
     for w in &r.warnings {
         s += &format!("warning: {w}\n");
     }
@@ -562,6 +627,7 @@ fn score_rows(r: &EvalResult) -> Vec<(&'static str, &Calibrated)> {
         ("shape follows i", &r.shape_follows),
         ("appearance follows j", &r.appearance_follows),
         ("pose yaw error deg", &r.pose_yaw_error_deg),
+        ("  in its own frame", &r.pose_yaw_error_in_frame_deg),
         ("pose pitch error deg", &r.pose_pitch_error_deg),
     ]
 }
@@ -580,7 +646,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let cell = s + 6;
     let width = (grid.width() as i64).max(k * cell + 20).max(620) + 20;
     let hist_h = 150;
-    let height = 20 + 14 * 9 + 20 + grid.height() as i64 + 30 + hist_h + 30 + k * cell + 20;
+    let height = 20 + 14 * 11 + 20 + grid.height() as i64 + 30 + hist_h + 30 + k * cell + 20;
     let mut img = image::RgbImage::from_pixel(width as u32, height as u32, Rgb([255, 255, 255]));
     let black = Rgb([0, 0, 0]);
     let mut y = 10;
@@ -605,6 +671,13 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
             1,
         );
     }
+    y += 14;
+    let o = &r.yaw_frame_offset_deg;
+    let line = format!(
+        "yaw in its own frame: turned {:.1} (model) {:.1} (real) {:.1} (random) deg",
+        o.model, o.real, o.random
+    );
+    draw_text(&mut img, 10, y, &line, black, 1);
     y += 24;
     draw_text(&mut img, 10, y, "samples", black, 1);
     y += 12;
@@ -701,5 +774,54 @@ mod tests {
         );
         let c = Calibrated::new(5.0, 1.0, 9.0);
         assert_eq!(c.position, 0.5);
+    }
+
+    fn poses(pitch_yaw_deg: &[(f64, f64)]) -> Tensor {
+        let flat: Vec<f64> = pitch_yaw_deg.iter().flat_map(|&(p, y)| [p.to_radians(), y.to_radians()]).collect();
+        Tensor::from_slice(&flat).view([-1, 2]).to_kind(Kind::Float)
+    }
+
+    #[test]
+    fn yaw_error_is_measured_in_the_generators_own_frame() {
+        // Rendered yaws around the circle; the probe reads each one turned by 90° (the
+        // generator's frame) and off by +4°, −2°, 0°, +6°, +1°, so the best rotation is 91°
+        // (their median) and leaves errors 3, 3, 1, 5, 0 (mean 2.4°); pitch is off by
+        // 1, 3, 1, 3, 2 (mean 2°).
+        let truth = poses(&[(60.0, -170.0), (60.0, -45.0), (70.0, 80.0), (50.0, 175.0), (60.0, 10.0)]);
+        let pred = Predictions {
+            classes: Tensor::zeros([5, 4], (Kind::Int64, Device::Cpu)),
+            colours: Tensor::zeros([5, 4, 3], (Kind::Float, Device::Cpu)),
+            poses: poses(&[(61.0, -76.0), (63.0, 43.0), (71.0, 170.0), (53.0, -89.0), (62.0, 101.0)]),
+        };
+        let e = pose_errors(&pred, &truth);
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-4;
+        assert!(close(e.yaw_offset, 91.0), "{e:?}");
+        assert!(close(e.yaw_in_frame, 2.4), "{e:?}");
+        // Unaligned: 94, 88, 90, 96 (−89° − 175° = −264° wraps to 96°), 91.
+        assert!(close(e.yaw, (94.0 + 88.0 + 90.0 + 96.0 + 91.0) / 5.0), "{e:?}");
+        assert!(close(e.pitch, 2.0), "{e:?}");
+        // A probe that reads the rendered yaw exactly: no rotation, no error.
+        let exact = Predictions { poses: truth.shallow_clone(), ..pred };
+        let e = pose_errors(&exact, &truth);
+        assert_eq!((e.yaw, e.yaw_in_frame, e.yaw_offset, e.pitch), (0.0, 0.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn the_best_yaw_offset_wraps_around_the_circle() {
+        // Differences straddling ±180°: the best rotation is 180°, not their plain mean 0°.
+        let (c, m) = best_yaw_offset(&[178.0, -178.0, 176.0, -176.0]);
+        assert!((wrap_deg(c - 180.0)).abs() <= 4.0 && (m - 3.0).abs() < 1e-12, "{c} {m}");
+        // Scanning every candidate is exact: a brute-force search over 0.01° steps never wins.
+        let d = [10.0, 30.0, 35.0, -120.0, 170.0, -175.0, 90.0];
+        let (_, m) = best_yaw_offset(&d);
+        let brute = (0..36000)
+            .map(|i| {
+                let c = i as f64 / 100.0 - 180.0;
+                d.iter().map(|&x| wrap_deg(x - c).abs()).sum::<f64>() / d.len() as f64
+            })
+            .fold(f64::INFINITY, f64::min);
+        assert!(m <= brute + 1e-12 && brute - m < 1e-2, "{m} {brute}");
+        assert_eq!(wrap_deg(180.0), -180.0);
+        assert_eq!(wrap_deg(-190.0), 170.0);
     }
 }
