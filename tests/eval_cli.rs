@@ -109,6 +109,18 @@ fn probe_learns_and_eval_is_calibrated() {
     // The dataset's own swaps follow shape and appearance as constructed.
     assert!(json["shape_follows"]["real"].as_f64().unwrap() > 0.6, "{}", json["shape_follows"]);
     assert_eq!(json["classes"].as_array().unwrap().len(), 4);
+    // The yaw error in each distribution's own frame is a minimum over rotations that
+    // include none: never above the plain error; each rotation lies in [−180°, 180°).
+    for end in ["model", "real", "random"] {
+        let (plain, in_frame) = (
+            json["pose_yaw_error_deg"][end].as_f64().unwrap(),
+            json["pose_yaw_error_in_frame_deg"][end].as_f64().unwrap(),
+        );
+        assert!(in_frame <= plain, "{end}: in frame {in_frame} > plain {plain}");
+        let offset = json["yaw_frame_offset_deg"][end].as_f64().unwrap();
+        assert!((-180.0..180.0).contains(&offset), "{end}: rotation {offset}");
+    }
+    assert!(text.contains("in its own frame"), "{text}");
     assert!(Path::new(&out.join("report.png")).is_file());
     let img = image::open(out.join("report.png")).unwrap();
     assert!(img.width() >= 300 && img.height() >= 300);
@@ -138,6 +150,12 @@ fn probe_learns_and_eval_is_calibrated() {
     assert!(evals[0]["frechet"].as_f64().unwrap() > 0.0);
     assert!(evals[0]["real_end"]["frechet"].as_f64().unwrap() > 0.0);
     assert!(evals[0]["coverage_tv"].as_f64().is_some());
+    for e in [&evals[0], &evals[0]["real_end"]] {
+        let (plain, in_frame) =
+            (e["pose_yaw_error_deg"].as_f64().unwrap(), e["pose_yaw_error_in_frame_deg"].as_f64().unwrap());
+        assert!(in_frame <= plain, "in frame {in_frame} > plain {plain}: {e}");
+        assert!((-180.0..180.0).contains(&e["yaw_frame_offset_deg"].as_f64().unwrap()), "{e}");
+    }
 }
 
 #[test]

@@ -926,6 +926,7 @@ impl Trainer {
                 "appearance_follows": ev.real.appearance_follows,
                 "pose_yaw_error_deg": ev.real.pose.yaw,
                 "pose_yaw_error_in_frame_deg": ev.real.pose.yaw_in_frame,
+                "yaw_frame_offset_deg": ev.real.pose.yaw_offset,
             },
             "seconds": start.elapsed().as_secs_f64(),
         }))
