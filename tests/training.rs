@@ -6,7 +6,9 @@ mod common;
 
 use common::TempDir;
 use gdrf_core::checkpoint::load_generator;
+use gdrf_core::disc::augment::Augmentation;
 use gdrf_core::disc::DiscKind;
+use gdrf_core::loss::gan::Adversarial;
 use gdrf_core::train::{run, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
@@ -143,11 +145,13 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
 }
 
 #[test]
-fn the_projected_discriminator_and_the_coverage_term_train_and_resume_exactly() {
+fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_term_trains_and_resumes_exactly() {
     let dir = TempDir::new("train-projected");
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.checkpoint_interval = 100;
     cfg.discriminator.kind = DiscKind::Projected;
+    cfg.discriminator.augment = vec![Augmentation::Color, Augmentation::Translation, Augmentation::Cutout];
+    cfg.loss.adversarial = Adversarial::Hinge;
     cfg.loss.r1_gamma = 0.0;
     cfg.loss.coverage_weight = 1.0;
     cfg.loss.coverage_candidates = 3;
@@ -159,7 +163,21 @@ fn the_projected_discriminator_and_the_coverage_term_train_and_resume_exactly() 
         let cov = r.g_terms.iter().find(|(k, _)| *k == "g_coverage").expect("a coverage term").1;
         assert!(cov.is_finite() && cov > 0.0, "step {}: coverage {cov}", r.step);
         assert!(r.grad_norm_d > 0.0 && r.grad_norm_g > 0.0);
+        // Hinge terms are means of relu(1 ∓ logit): never negative.
+        for k in ["d_real", "d_fake"] {
+            let v = r.d_terms.iter().find(|(n, _)| *n == k).expect(k).1;
+            assert!(v.is_finite() && v >= 0.0, "step {}: {k} {v}", r.step);
+        }
     }
+    // The augmentation reaches both players: without it, the same seed's first step gives
+    // another D loss and other G terms.
+    let mut plain = cfg.clone();
+    plain.discriminator.augment.clear();
+    let mut c = Trainer::new(plain, &dir.path("c")).unwrap();
+    let first = run_steps(&mut c, 1).remove(0);
+    assert_ne!(first.d_total, full[0].d_total);
+    let adv = |r: &StepReport| r.g_terms.iter().find(|(k, _)| *k == "g_adv").expect("g_adv").1;
+    assert_ne!(adv(&first), adv(&full[0]));
     // The spectral norm's power-iteration vectors and the fixed projections are saved with
     // D, so a resumed run continues the very same numbers.
     let mut b = Trainer::new(cfg, &dir.path("b")).unwrap();

@@ -84,6 +84,9 @@ pub enum Purpose {
     InitData = 24,
     InitBatches = 25,
     InitWeights = 26,
+    /// The discriminator's input augmentation, in its step and in the generator's.
+    DiscAugment = 27,
+    GenAugment = 28,
 }
 
 /// A source of uniform and normal tensors.

@@ -3,6 +3,7 @@
 //! prediction and the pose (pitch, yaw). An option for small budgets
 //! ([`projected::ProjectedDiscriminator`]): learned heads on a frozen pretrained network's
 //! features, with the same outputs. The training loop sees either through [`Judge`].
+pub mod augment;
 pub mod projected;
 
 use crate::nn::mapping::leaky_relu;
@@ -33,6 +34,10 @@ pub struct DiscConfig {
     pub kind: DiscKind,
     /// Settings of the projected discriminator (read when `kind = "projected"`).
     pub projected: ProjectedConfig,
+    /// DiffAugment's transforms applied to every image the discriminator judges, real or
+    /// generated, in both players' steps: any of `"color"`, `"translation"`, `"cutout"`
+    /// ([`augment`]); empty (the release) = none. The projected GAN trains with all three.
+    pub augment: Vec<augment::Augmentation>,
 }
 
 /// Which discriminator a run trains.
@@ -53,6 +58,7 @@ impl Default for DiscConfig {
             minibatch_std_group: 0,
             kind: DiscKind::Release,
             projected: ProjectedConfig::default(),
+            augment: Vec::new(),
         }
     }
 }

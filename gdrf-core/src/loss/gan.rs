@@ -1,5 +1,6 @@
-//! Adversarial terms: non-saturating logistic losses, R1, the pose loss and top-k.
+//! Adversarial terms: non-saturating logistic or hinge losses, R1, the pose loss and top-k.
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
 use tch::Tensor;
 
 /// D's loss on fakes, mean softplus(logit). `logit: (B, 1)`.
@@ -14,10 +15,61 @@ pub fn d_real(logit: &Tensor) -> Tensor {
 
 /// G's non-saturating loss over the `k` largest logits: mean softplus(−logit).
 pub fn g_nonsaturating(logit: &Tensor, k: i64) -> Tensor {
-    let b = logit.size()[0];
+    (-top(logit, k)).softplus().mean(logit.kind())
+}
+
+/// Which adversarial loss both players use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Adversarial {
+    /// The release's: D softplus(−real) + softplus(fake), G softplus(−fake).
+    #[default]
+    Logistic,
+    /// The projected GAN's (and BigGAN's): D relu(1 − real) + relu(1 + fake), G −fake.
+    /// D stops pushing a logit once it is past the margin, so a discriminator that
+    /// separates the two sets early cannot drive its logits, and G's loss, without bound.
+    Hinge,
+}
+
+/// D's loss on reals with mean relu(1 − logit).
+pub fn d_real_hinge(logit: &Tensor) -> Tensor {
+    (-logit + 1.0).relu().mean(logit.kind())
+}
+
+/// D's loss on fakes with mean relu(1 + logit).
+pub fn d_fake_hinge(logit: &Tensor) -> Tensor {
+    (logit + 1.0).relu().mean(logit.kind())
+}
+
+/// G's hinge loss over the `k` largest logits: −mean(logit).
+pub fn g_hinge(logit: &Tensor, k: i64) -> Tensor {
+    -top(logit, k).mean(logit.kind())
+}
+
+/// D's (real, fake) terms under `loss`.
+pub fn d_adversarial(loss: Adversarial, real: &Tensor, fake: &Tensor) -> (Tensor, Tensor) {
+    match loss {
+        Adversarial::Logistic => (d_real(real), d_fake(fake)),
+        Adversarial::Hinge => (d_real_hinge(real), d_fake_hinge(fake)),
+    }
+}
+
+/// G's term under `loss` over the `k` largest logits.
+pub fn g_adversarial(loss: Adversarial, fake: &Tensor, k: i64) -> Tensor {
+    match loss {
+        Adversarial::Logistic => g_nonsaturating(fake, k),
+        Adversarial::Hinge => g_hinge(fake, k),
+    }
+}
+
+/// The `k` largest of a `(B, 1)` batch of logits, flattened (all of them when k ≥ B).
+fn top(logit: &Tensor, k: i64) -> Tensor {
     let l = logit.view([-1]);
-    let l = if k < b { l.topk(k, 0, true, true).0 } else { l };
-    (-l).softplus().mean(logit.kind())
+    if k < l.size()[0] {
+        l.topk(k, 0, true, true).0
+    } else {
+        l
+    }
 }
 
 /// The release's top-k schedule: p = max(0.99^(step/interval), v), k = ⌈p·n⌉.
@@ -79,6 +131,27 @@ pub fn mode_seeking(img: &Tensor, z: &Tensor, cap: f64, pool: i64) -> Tensor {
 mod tests {
     use super::*;
     use tch::Kind;
+
+    #[test]
+    fn hinge_terms_on_known_logits() {
+        let o = (Kind::Double, tch::Device::Cpu);
+        let real = Tensor::from_slice(&[2.0f64, 0.5, -1.0]).view([3, 1]).to_kind(o.0);
+        let fake = Tensor::from_slice(&[-3.0f64, -0.5, 1.5]).view([3, 1]).to_kind(o.0);
+        let (r, f) = d_adversarial(Adversarial::Hinge, &real, &fake);
+        // relu(1 − r): 0, 0.5, 2 → 2.5/3; relu(1 + f): 0, 0.5, 2.5 → 3/3.
+        assert!((r.double_value(&[]) - 2.5 / 3.0).abs() < 1e-15);
+        assert!((f.double_value(&[]) - 1.0).abs() < 1e-15);
+        // G: −mean over the 2 largest fake logits (1.5, −0.5) = −0.5; over all 3: 2/3.
+        assert!((g_adversarial(Adversarial::Hinge, &fake, 2).double_value(&[]) + 0.5).abs() < 1e-15);
+        assert!((g_adversarial(Adversarial::Hinge, &fake, 3).double_value(&[]) - 2.0 / 3.0).abs() < 1e-15);
+        // The logistic choice is the release's terms.
+        let (r, f) = d_adversarial(Adversarial::Logistic, &real, &fake);
+        let sp = |x: f64| (1.0 + x.exp()).ln();
+        assert!((r.double_value(&[]) - (sp(-2.0) + sp(-0.5) + sp(1.0)) / 3.0).abs() < 1e-15);
+        assert!((f.double_value(&[]) - (sp(-3.0) + sp(-0.5) + sp(1.5)) / 3.0).abs() < 1e-15);
+        let g = g_adversarial(Adversarial::Logistic, &fake, 2).double_value(&[]);
+        assert!((g - (sp(-1.5) + sp(0.5)) / 2.0).abs() < 1e-15);
+    }
 
     #[test]
     fn mode_seeking_on_known_pairs() {

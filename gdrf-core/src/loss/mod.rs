@@ -53,6 +53,9 @@ pub struct LossConfig {
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
+    /// The adversarial loss: `"logistic"` (the release's non-saturating logistic loss) or
+    /// `"hinge"` (the projected GAN's).
+    pub adversarial: gan::Adversarial,
     pub reg: RegConfig,
 }
 
@@ -72,6 +75,7 @@ impl Default for LossConfig {
             coverage_resolution: 16,
             topk_interval: 2000.0,
             topk_floor: 0.6,
+            adversarial: gan::Adversarial::Logistic,
             reg: RegConfig::default(),
         }
     }
@@ -183,7 +187,7 @@ pub struct Schedule {
 }
 
 /// The generator's adversarial terms on the discriminator's verdict `fake` about rendered
-/// images seen from `poses: (B, 2)`: top-k non-saturating GAN, pose and (when its weight
+/// images seen from `poses: (B, 2)`: top-k adversarial loss ([`gan::g_adversarial`]), pose and (when its weight
 /// is not 0) latent prediction of the codes `z`.
 pub fn generator_adversarial(
     fake: &DiscOutput,
@@ -198,7 +202,7 @@ pub fn generator_adversarial(
         return Err(Error::Invalid(format!("fake poses have shape {:?}, expected [{b}, 2]", poses.size())));
     }
     let k = gan::topk_count(at.step, b, cfg.topk_interval, cfg.topk_floor);
-    let adv = gan::g_nonsaturating(&fake.logit, k);
+    let adv = gan::g_adversarial(cfg.adversarial, &fake.logit, k);
     let pose = gan::pose_loss(&fake.pose, poses);
     let mut total = &adv + &pose * cfg.pose_weight;
     let mut terms = vec![("g_adv", adv), ("g_pose", pose)];
@@ -273,7 +277,7 @@ pub fn generator_loss(
 }
 
 /// The discriminator's loss from its verdicts on real images and on (detached) fakes:
-/// logistic terms, R1 on the reals when due ([`LossConfig::r1_due`]; lazily every
+/// adversarial terms ([`gan::d_adversarial`]), R1 on the reals when due ([`LossConfig::r1_due`]; lazily every
 /// `r1_interval` steps, scaled by it — `real_images` must then be the tensor `real` was
 /// computed from, with requires_grad), pose on fakes (`fake_poses: (B, 2)`) and on reals
 /// (when `real_poses` are known).
@@ -289,8 +293,7 @@ pub fn discriminator_loss(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     cfg.validate()?;
-    let d_real = gan::d_real(&real.logit);
-    let d_fake = gan::d_fake(&fake.logit);
+    let (d_real, d_fake) = gan::d_adversarial(cfg.adversarial, &real.logit, &fake.logit);
     let pose_fake = gan::pose_loss(&fake.pose, fake_poses);
     let mut total = &d_real + &d_fake + &pose_fake * cfg.pose_weight;
     let mut terms = vec![("d_real", d_real), ("d_fake", d_fake)];

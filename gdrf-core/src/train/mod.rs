@@ -19,6 +19,7 @@ pub use pass::{discriminator_pass, generator_pass, FakeBatch};
 use crate::camera::Poses;
 use crate::checkpoint::{self, Header};
 use crate::data::{self, Dataset};
+use crate::disc::augment::AugmentedJudge;
 use crate::disc::Judge;
 use crate::loss::deform_reg::{reg_ray_count, select_samples};
 use crate::loss::{generator_image_terms, generator_regularisation, Losses, Schedule};
@@ -441,6 +442,13 @@ impl Trainer {
         (z, poses, noise)
     }
 
+    /// The discriminator behind the configured augmentation (`[discriminator] augment`),
+    /// drawing from (seed, step, `purpose`); `None` when no augmentation is configured.
+    fn augmented(&self, step: i64, purpose: Purpose) -> Option<AugmentedJudge<'_>> {
+        let ops = &self.cfg.discriminator.augment;
+        (!ops.is_empty()).then(|| AugmentedJudge::new(self.disc.as_ref(), ops, self.rng(step, purpose)))
+    }
+
     fn discriminator_step(
         &mut self,
         stage: &Stage,
@@ -463,7 +471,9 @@ impl Trainer {
             regions: stage.regions,
             noise: &noise,
         };
-        let losses = discriminator_pass(&renderer, self.disc.as_ref(), real, real_poses, &fake, at, &self.cfg.loss)?;
+        let augmented = self.augmented(at.step, Purpose::DiscAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let losses = discriminator_pass(&renderer, judge, real, real_poses, &fake, at, &self.cfg.loss)?;
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
         losses.total.backward();
@@ -590,6 +600,9 @@ impl Trainer {
         let chunk = b / split;
         let mut sums: Vec<(&'static str, f64)> = Vec::new();
         let mut total = 0.0;
+        // One augmentation stream for the step: successive chunks get successive draws.
+        let augmented = self.augmented(step, Purpose::GenAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
         let result = (|| -> Result<()> {
             for c in 0..split {
                 let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
@@ -598,7 +611,7 @@ impl Trainer {
                 let noise =
                     Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
                 let losses =
-                    self.generator_chunk(stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
+                    self.generator_chunk(judge, stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
                 total += losses.total.double_value(&[]) / split as f64;
                 for (i, (k, v)) in losses.values().into_iter().enumerate() {
                     if i == sums.len() {
@@ -619,6 +632,7 @@ impl Trainer {
     #[allow(clippy::too_many_arguments)]
     fn generator_chunk(
         &self,
+        judge: &dyn Judge,
         stage: &Stage,
         at: Schedule,
         z: &Tensor,
@@ -638,7 +652,7 @@ impl Trainer {
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None);
             let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
-            let mut losses = generator_pass(&renderer, self.disc.as_ref(), &fake, Some(reg_rays), at, cfg)?;
+            let mut losses = generator_pass(&renderer, judge, &fake, Some(reg_rays), at, cfg)?;
             losses.total = losses.total.g_mul_scalar(fault);
             (&losses.total / split).backward();
             return Ok(losses);
@@ -651,7 +665,7 @@ impl Trainer {
             renderer.render_regions(&lat, poses, res, stage.regions, noise)
         })?;
         let img = img.detach().set_requires_grad(true);
-        let d = self.disc.judge(&img, at.alpha)?;
+        let d = judge.judge(&img, at.alpha)?;
         let mut adv = generator_image_terms(&d, &img, &target, Some(z), at, cfg)?;
         adv.total = adv.total.g_mul_scalar(fault);
         let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
