@@ -92,6 +92,8 @@ fn probe_learns_and_eval_is_calibrated() {
         "3",
         "--steps",
         "6",
+        "--real-resolution",
+        "8",
         "--out",
         out.to_str().unwrap(),
         "--threads",
@@ -121,7 +123,24 @@ fn probe_learns_and_eval_is_calibrated() {
         assert!((-180.0..180.0).contains(&offset), "{end}: rotation {offset}");
     }
     assert!(text.contains("in its own frame"), "{text}");
+    // The real images seen at 8² instead of 32²: scored like the real end, and further from
+    // the held-out images than the real end at full resolution.
+    let low = &json["real_at_resolution"];
+    assert_eq!(low["resolution"].as_i64(), Some(8), "{low}");
+    for key in ["frechet", "kernel", "coverage_tv", "shape_follows", "appearance_follows", "pose_pitch_error_deg"] {
+        assert!(low[key].as_f64().is_some_and(f64::is_finite), "{key}: {low}");
+    }
+    assert!(low["frechet"].as_f64().unwrap() > fd("real"), "at 8²: {low}, real end {}", fd("real"));
+    assert!(text.contains("real images at 8²"), "{text}");
     assert!(Path::new(&out.join("report.png")).is_file());
+    // A lower resolution that is not lower is refused, naming the flag.
+    let bad = Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+        .args(["eval", "--generator", gen.to_str().unwrap(), "--dataset", d, "--probe", probe.to_str().unwrap()])
+        .args(["--real-resolution", "32", "--out", tmp.path("bad").to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("--real-resolution 32"), "{err}");
     let img = image::open(out.join("report.png")).unwrap();
     assert!(img.width() >= 300 && img.height() >= 300);
 

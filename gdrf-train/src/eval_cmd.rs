@@ -91,6 +91,11 @@ struct RunArgs {
     /// Samples per ray (coarse; as many fine).
     #[arg(long, default_value_t = 24)]
     steps: i64,
+    /// Also score the real images seen at this lower resolution (antialiased down, then
+    /// back up): what the resolution alone costs real data, the reference for a generator
+    /// trained at it (e.g. 32 for `chairs-tiny`). Printed and written as `real_at_resolution`.
+    #[arg(long)]
+    real_resolution: Option<i64>,
     /// efficientnet (offline default) or inception (FID's network; needs --weights).
     #[arg(long, default_value = "efficientnet")]
     features: String,
@@ -209,6 +214,7 @@ fn run(a: RunArgs) -> Result<()> {
         features,
         effnet_weights: a.common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path),
         threads: a.common.threads,
+        real_resolution: a.real_resolution,
     };
     let pb = super::bar(0, "evaluating");
     let start = Instant::now();

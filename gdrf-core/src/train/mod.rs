@@ -914,6 +914,7 @@ impl Trainer {
                 features: FeatureKind::Efficientnet,
                 effnet_weights: crate::eval::effnet::EfficientNetLite0::default_path(),
                 threads: self.cfg.threads,
+                real_resolution: None,
             };
             self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
         }
