@@ -191,6 +191,12 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
     }
     assert!(same_params(&params(&a.dvs), &params(&b.dvs)));
     assert!(same_params(&params(&a.gvs), &params(&b.gvs)));
+    // The exported generator says which discriminator shaped it, and the evaluation reads it.
+    let g = load_generator(&dir.path("a").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(g.header.info.get("discriminator").map(String::as_str), Some("projected"));
+    assert!(gdrf_core::eval::report::trained_against_projected(&g.header));
+    let g = load_generator(&dir.path("c").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
+    assert!(gdrf_core::eval::report::trained_against_projected(&g.header));
 }
 
 #[test]

@@ -51,6 +51,16 @@ pub enum DiscKind {
     Projected,
 }
 
+impl DiscKind {
+    /// The config's spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            DiscKind::Release => "release",
+            DiscKind::Projected => "projected",
+        }
+    }
+}
+
 impl Default for DiscConfig {
     fn default() -> Self {
         Self {

@@ -27,6 +27,24 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use tch::{nn, Device, Kind, Tensor};
 
+/// The generator header's `info` key naming the discriminator it was trained against.
+pub const DISCRIMINATOR_INFO: &str = "discriminator";
+
+/// Said when a generator trained against the projected discriminator is scored with
+/// EfficientNet-Lite0 features: the generator was optimised in that very feature space.
+pub const SHARED_FEATURES_WARNING: &str = "this generator was trained against the projected discriminator, built on \
+     EfficientNet-Lite0's frozen features, the very features the Fréchet and kernel distances use: the generator was \
+     optimised in their space, so they are not independent judges of it (score it with --features inception, and \
+     read the probe's scores and the images)";
+
+/// Whether a generator (its header) was trained against the projected discriminator:
+/// from the `info` its run wrote, or a training checkpoint's config.
+pub fn trained_against_projected(h: &crate::checkpoint::Header) -> bool {
+    h.info.get(DISCRIMINATOR_INFO).is_some_and(|k| k == "projected")
+        || h.training.as_ref().and_then(|t| t.pointer("/config/discriminator/kind")).and_then(|k| k.as_str())
+            == Some("projected")
+}
+
 /// Which pretrained features the distances use.
 #[derive(Debug, Clone)]
 pub enum FeatureKind {
@@ -613,6 +631,9 @@ pub fn evaluate(
     let rand = ev.score(&random, &cam, "random generator", progress)?;
     let real = &ev.real;
     let mut warnings: Vec<String> = Vec::new();
+    if matches!(opts.features, FeatureKind::Efficientnet) && trained_against_projected(&loaded.header) {
+        warnings.push(SHARED_FEATURES_WARNING.into());
+    }
     for w in model.warnings.iter().chain(&rand.warnings).chain(&real.warnings) {
         if !warnings.contains(w) {
             warnings.push(w.clone());
@@ -845,6 +866,24 @@ pub fn write(dir: &Path, r: &EvalResult) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_generator_trained_against_the_projected_discriminator_is_recognised() {
+        use crate::checkpoint::Header;
+        let plain = Header::generator(Default::default(), None);
+        assert!(!trained_against_projected(&plain), "no provenance: no warning");
+        let mut h = plain.clone();
+        h.info.insert(DISCRIMINATOR_INFO.into(), "release".into());
+        assert!(!trained_against_projected(&h));
+        h.info.insert(DISCRIMINATOR_INFO.into(), "projected".into());
+        assert!(trained_against_projected(&h));
+        // A training checkpoint from before the info key: its config says so.
+        let mut t = plain.clone();
+        t.training = Some(serde_json::json!({"config": {"discriminator": {"kind": "projected"}}}));
+        assert!(trained_against_projected(&t));
+        t.training = Some(serde_json::json!({"config": {"discriminator": {"kind": "release"}}}));
+        assert!(!trained_against_projected(&t));
+    }
 
     #[test]
     fn through_resolution_keeps_smooth_images_and_removes_what_the_low_grid_cannot_hold() {

@@ -766,6 +766,9 @@ impl Trainer {
         h.info.insert("step".into(), p.step.to_string());
         h.info.insert("images_seen".into(), p.images_seen.to_string());
         h.info.insert("train_seconds".into(), format!("{:.0}", p.train_seconds));
+        // Which discriminator shaped it: the evaluation warns when its distances use the
+        // features a projected discriminator was built on.
+        h.info.insert(crate::eval::report::DISCRIMINATOR_INFO.into(), self.cfg.discriminator.kind.name().into());
         h
     }
 
@@ -944,6 +947,8 @@ impl Trainer {
                 "yaw_frame_offset_deg": ev.real.pose.yaw_offset,
             },
             "seconds": start.elapsed().as_secs_f64(),
+            "warning": (self.cfg.discriminator.kind == crate::disc::DiscKind::Projected)
+                .then_some(crate::eval::report::SHARED_FEATURES_WARNING),
         }))
     }
 
