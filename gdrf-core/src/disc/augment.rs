@@ -69,16 +69,15 @@ pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64) -> Result<Tensor>
     if centres.len() as i64 != b {
         return Err(Error::Invalid(format!("{} cutouts for a batch of {b} images", centres.len())));
     }
-    let opts = (Kind::Float, img.device());
     let band = |starts: Vec<i64>, n: i64| {
         let lo = Tensor::from_slice(&starts).to_device(img.device()).view([-1, 1]);
         let idx = Tensor::arange(n, (Kind::Int64, img.device())).view([1, -1]);
-        (idx.ge_tensor(&lo).logical_and(&idx.lt_tensor(&(lo + size)))).to_kind(opts.0)
+        (idx.ge_tensor(&lo).logical_and(&idx.lt_tensor(&(lo + size)))).to_kind(img.kind())
     };
     let r = band(centres.iter().map(|c| c.0 - size / 2).collect(), h);
     let c = band(centres.iter().map(|c| c.1 - size / 2).collect(), w);
     let hole = r.view([b, 1, h, 1]) * c.view([b, 1, 1, w]);
-    Ok(img * (Tensor::ones([1], opts) - hole).to_kind(img.kind()))
+    Ok(img * (-hole + 1.0))
 }
 
 fn dims(img: &Tensor) -> Result<(i64, i64, i64)> {

@@ -40,9 +40,10 @@ pub const SHARED_FEATURES_WARNING: &str = "this generator was trained against th
 /// Whether a generator (its header) was trained against the projected discriminator:
 /// from the `info` its run wrote, or a training checkpoint's config.
 pub fn trained_against_projected(h: &crate::checkpoint::Header) -> bool {
-    h.info.get(DISCRIMINATOR_INFO).is_some_and(|k| k == "projected")
+    let projected = crate::disc::DiscKind::Projected.name();
+    h.info.get(DISCRIMINATOR_INFO).is_some_and(|k| k == projected)
         || h.training.as_ref().and_then(|t| t.pointer("/config/discriminator/kind")).and_then(|k| k.as_str())
-            == Some("projected")
+            == Some(projected)
 }
 
 /// Which pretrained features the distances use.
@@ -125,14 +126,7 @@ impl LowResolutionEnd {
 
 /// `imgs: (N, 3, S, S)` antialiased down to `low`² and bilinearly back up to S².
 pub fn through_resolution(imgs: &Tensor, low: i64) -> Tensor {
-    let s = imgs.size();
-    let (h, w) = (s[2], s[3]);
-    imgs.internal_upsample_bilinear2d_aa(&[low, low][..], false, None, None).upsample_bilinear2d(
-        &[h, w][..],
-        false,
-        None,
-        None,
-    )
+    crate::invert::resize(&crate::invert::resize(imgs, low), imgs.size()[2])
 }
 
 /// The yaw rotation found for the model, the real images and the random generator (degrees).

@@ -924,7 +924,7 @@ impl Trainer {
         let ev = self.evaluator.as_ref().expect("built above");
         let start = Instant::now();
         let s = ev.score(&self.ema_generator, &self.cfg.camera, "EMA generator", &mut |_, _, _| {})?;
-        Ok(serde_json::json!({
+        let mut line = serde_json::json!({
             "event": "eval",
             "step": self.progress.step,
             "images": e.num,
@@ -947,9 +947,11 @@ impl Trainer {
                 "yaw_frame_offset_deg": ev.real.pose.yaw_offset,
             },
             "seconds": start.elapsed().as_secs_f64(),
-            "warning": (self.cfg.discriminator.kind == crate::disc::DiscKind::Projected)
-                .then_some(crate::eval::report::SHARED_FEATURES_WARNING),
-        }))
+        });
+        if self.cfg.discriminator.kind == crate::disc::DiscKind::Projected {
+            line["warning"] = crate::eval::report::SHARED_FEATURES_WARNING.into();
+        }
+        Ok(line)
     }
 
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).
