@@ -72,6 +72,12 @@ fn config_errors_name_the_key_and_the_expectation() {
     assert!(out.status.success());
     let printed = String::from_utf8_lossy(&out.stdout);
     assert!(printed.contains("grad_clip = 0.3") && printed.contains("[[stages]]"), "{printed}");
+    // A bare file name, run from the config's folder: paths resolve against that folder.
+    let out = bin().current_dir(&dir.0).arg("--print-config").arg("tiny.toml").output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let printed = String::from_utf8_lossy(&out.stdout);
+    let want = format!("path = {:?}", std::path::absolute(dir.path("data")).unwrap().display().to_string());
+    assert!(printed.contains(&want), "{want} not in {printed}");
 }
 
 #[test]

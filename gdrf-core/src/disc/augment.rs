@@ -9,9 +9,12 @@
 //! - `color`: brightness + U(−0.5, 0.5), saturation × U(0, 2) about the per-pixel channel
 //!   mean, contrast × U(0.5, 1.5) about the image mean (in that order);
 //! - `translation`: a shift by a whole number of pixels in [−⌊S/8 + ½⌋, ⌊S/8 + ½⌋] on
-//!   each axis, the uncovered border 0;
-//! - `cutout`: a square of side ⌊S/2 + ½⌋ set to 0, centred on a random pixel and clipped
-//!   to the image.
+//!   each axis, the uncovered border set to the fill;
+//! - `cutout`: a square of side ⌊S/2 + ½⌋ set to the fill, centred on a random pixel and
+//!   clipped to the image.
+//!
+//! DiffAugment fills with 0, mid-grey in [−1, 1]; `fill = 1` is white, the background of
+//! the procedural datasets and the authors' renders.
 //!
 //! The draws come from a [`StepRng`] of the step, so a resumed run replays them.
 use super::{DiscOutput, Judge};
@@ -41,9 +44,9 @@ pub fn color(img: &Tensor, brightness: &Tensor, saturation: &Tensor, contrast: &
     (&x - &m) * per(contrast) + &m
 }
 
-/// `out[b, :, i, j] = img[b, :, i + dy_b, j + dx_b]`, 0 where that falls outside.
+/// `out[b, :, i, j] = img[b, :, i + dy_b, j + dx_b]`, `fill` where that falls outside.
 /// `shifts`: per image (dy, dx), each at most the image side in magnitude.
-pub fn translate(img: &Tensor, shifts: &[(i64, i64)]) -> Result<Tensor> {
+pub fn translate(img: &Tensor, shifts: &[(i64, i64)], fill: f64) -> Result<Tensor> {
     let (b, h, w) = dims(img)?;
     if shifts.len() as i64 != b {
         return Err(Error::Invalid(format!("{} translations for a batch of {b} images", shifts.len())));
@@ -52,7 +55,7 @@ pub fn translate(img: &Tensor, shifts: &[(i64, i64)]) -> Result<Tensor> {
         .iter()
         .enumerate()
         .map(|(i, &(dy, dx))| {
-            img.narrow(0, i as i64, 1).constant_pad_nd([w, w, h, h]).narrow(2, h + dy.clamp(-h, h), h).narrow(
+            img.narrow(0, i as i64, 1).pad([w, w, h, h], "constant", fill).narrow(2, h + dy.clamp(-h, h), h).narrow(
                 3,
                 w + dx.clamp(-w, w),
                 w,
@@ -62,9 +65,10 @@ pub fn translate(img: &Tensor, shifts: &[(i64, i64)]) -> Result<Tensor> {
     Ok(Tensor::cat(&rows, 0))
 }
 
-/// Sets to 0, per image, the `size × size` square whose rows start at `centre.0 − size/2`
-/// and columns at `centre.1 − size/2` (integer division), clipped to the image.
-pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64) -> Result<Tensor> {
+/// Sets to `fill`, per image, the `size × size` square whose rows start at
+/// `centre.0 − size/2` and columns at `centre.1 − size/2` (integer division), clipped to
+/// the image.
+pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64, fill: f64) -> Result<Tensor> {
     let (b, h, w) = dims(img)?;
     if centres.len() as i64 != b {
         return Err(Error::Invalid(format!("{} cutouts for a batch of {b} images", centres.len())));
@@ -77,7 +81,7 @@ pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64) -> Result<Tensor>
     let r = band(centres.iter().map(|c| c.0 - size / 2).collect(), h);
     let c = band(centres.iter().map(|c| c.1 - size / 2).collect(), w);
     let hole = r.view([b, 1, h, 1]) * c.view([b, 1, 1, w]);
-    Ok(img * (-hole + 1.0))
+    Ok(img * (-&hole + 1.0) + hole * fill)
 }
 
 fn dims(img: &Tensor) -> Result<(i64, i64, i64)> {
@@ -95,8 +99,9 @@ fn integers(rng: &mut dyn RandomSource, n: i64, lo: i64, hi: i64) -> Vec<i64> {
 }
 
 /// `img: (B, 3, S, S)` through `ops` in DiffAugment's order (colour, translation, cutout,
-/// whatever order they are listed in), with draws from `rng`.
-pub fn augment(img: &Tensor, ops: &[Augmentation], rng: &mut dyn RandomSource) -> Result<Tensor> {
+/// whatever order they are listed in), with draws from `rng`; what translation uncovers
+/// and cutout removes becomes `fill`.
+pub fn augment(img: &Tensor, ops: &[Augmentation], fill: f64, rng: &mut dyn RandomSource) -> Result<Tensor> {
     let (b, h, w) = dims(img)?;
     let mut x = img.shallow_clone();
     if ops.contains(&Augmentation::Color) {
@@ -108,14 +113,14 @@ pub fn augment(img: &Tensor, ops: &[Augmentation], rng: &mut dyn RandomSource) -
         let (sy, sx) = ((h as f64 / 8.0 + 0.5) as i64, (w as f64 / 8.0 + 0.5) as i64);
         let dy = integers(rng, b, -sy, sy + 1);
         let dx = integers(rng, b, -sx, sx + 1);
-        x = translate(&x, &dy.into_iter().zip(dx).collect::<Vec<_>>())?;
+        x = translate(&x, &dy.into_iter().zip(dx).collect::<Vec<_>>(), fill)?;
     }
     if ops.contains(&Augmentation::Cutout) {
         let size = (h as f64 / 2.0 + 0.5) as i64;
         // DiffAugment's centre range: [0, S + 1 − size mod 2).
         let cy = integers(rng, b, 0, h + (1 - size % 2));
         let cx = integers(rng, b, 0, w + (1 - size % 2));
-        x = cutout(&x, &cy.into_iter().zip(cx).collect::<Vec<_>>(), size)?;
+        x = cutout(&x, &cy.into_iter().zip(cx).collect::<Vec<_>>(), size, fill)?;
     }
     Ok(x)
 }
@@ -125,18 +130,19 @@ pub fn augment(img: &Tensor, ops: &[Augmentation], rng: &mut dyn RandomSource) -
 pub struct AugmentedJudge<'a> {
     inner: &'a dyn Judge,
     ops: &'a [Augmentation],
+    fill: f64,
     rng: RefCell<StepRng>,
 }
 
 impl<'a> AugmentedJudge<'a> {
-    pub fn new(inner: &'a dyn Judge, ops: &'a [Augmentation], rng: StepRng) -> Self {
-        Self { inner, ops, rng: RefCell::new(rng) }
+    pub fn new(inner: &'a dyn Judge, ops: &'a [Augmentation], fill: f64, rng: StepRng) -> Self {
+        Self { inner, ops, fill, rng: RefCell::new(rng) }
     }
 }
 
 impl Judge for AugmentedJudge<'_> {
     fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
-        let x = augment(img, self.ops, &mut *self.rng.borrow_mut())?;
+        let x = augment(img, self.ops, self.fill, &mut *self.rng.borrow_mut())?;
         self.inner.judge(&x, alpha)
     }
     fn used_parameters(&self, size: i64) -> Result<i64> {
@@ -159,38 +165,43 @@ mod tests {
     }
 
     #[test]
-    fn translation_moves_pixels_by_whole_steps_and_fills_with_zero() {
+    fn translation_moves_pixels_by_whole_steps_and_fills_the_border() {
         let img = ramp(2, 4);
-        let out = translate(&img, &[(1, -2), (0, 0)]).unwrap();
-        // Image 0: out[i, j] = img[i + 1, j − 2].
-        for c in 0..3 {
-            for i in 0..4 {
-                for j in 0..4 {
-                    let (si, sj) = (i + 1, j - 2);
-                    let want =
-                        if (0..4).contains(&si) && (0..4).contains(&sj) { at(&img, &[0, c, si, sj]) } else { 0.0 };
-                    assert_eq!(at(&out, &[0, c, i, j]), want, "c {c} i {i} j {j}");
+        // 0 is DiffAugment's fill, 1 white; 0.75 is exact in float32.
+        for fill in [0.0, 1.0, 0.75] {
+            let out = translate(&img, &[(1, -2), (0, 0)], fill).unwrap();
+            // Image 0: out[i, j] = img[i + 1, j − 2].
+            for c in 0..3 {
+                for i in 0..4 {
+                    for j in 0..4 {
+                        let (si, sj) = (i + 1, j - 2);
+                        let inside = (0..4).contains(&si) && (0..4).contains(&sj);
+                        let want = if inside { at(&img, &[0, c, si, sj]) } else { fill };
+                        assert_eq!(at(&out, &[0, c, i, j]), want, "fill {fill} c {c} i {i} j {j}");
+                    }
                 }
             }
+            assert_eq!(
+                Vec::<f32>::try_from(out.get(1).flatten(0, -1)).unwrap(),
+                Vec::<f32>::try_from(img.get(1).flatten(0, -1)).unwrap()
+            );
         }
-        assert_eq!(
-            Vec::<f32>::try_from(out.get(1).flatten(0, -1)).unwrap(),
-            Vec::<f32>::try_from(img.get(1).flatten(0, -1)).unwrap()
-        );
     }
 
     #[test]
-    fn cutout_zeroes_the_clipped_square_and_nothing_else() {
+    fn cutout_fills_the_clipped_square_and_nothing_else() {
         let img = ramp(2, 4);
-        // Size 2 centred at (0, 3): rows −1..0 → row 0, columns 2..3.
-        let out = cutout(&img, &[(0, 3), (2, 2)], 2).unwrap();
-        for c in 0..3 {
-            for i in 0..4 {
-                for j in 0..4 {
-                    let hole0 = i == 0 && (2..4).contains(&j);
-                    let hole1 = (1..3).contains(&i) && (1..3).contains(&j);
-                    assert_eq!(at(&out, &[0, c, i, j]), if hole0 { 0.0 } else { at(&img, &[0, c, i, j]) });
-                    assert_eq!(at(&out, &[1, c, i, j]), if hole1 { 0.0 } else { at(&img, &[1, c, i, j]) });
+        for fill in [0.0, 1.0, 0.75] {
+            // Size 2 centred at (0, 3): rows −1..0 → row 0, columns 2..3.
+            let out = cutout(&img, &[(0, 3), (2, 2)], 2, fill).unwrap();
+            for c in 0..3 {
+                for i in 0..4 {
+                    for j in 0..4 {
+                        let hole0 = i == 0 && (2..4).contains(&j);
+                        let hole1 = (1..3).contains(&i) && (1..3).contains(&j);
+                        assert_eq!(at(&out, &[0, c, i, j]), if hole0 { fill } else { at(&img, &[0, c, i, j]) });
+                        assert_eq!(at(&out, &[1, c, i, j]), if hole1 { fill } else { at(&img, &[1, c, i, j]) });
+                    }
                 }
             }
         }
@@ -226,9 +237,9 @@ mod tests {
         let ops = [Augmentation::Color, Augmentation::Translation, Augmentation::Cutout];
         let img = (Tensor::rand([4, 3, 16, 16], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).set_requires_grad(true);
         let draw = |step| StepRng::new(3, step, Purpose::DiscAugment, Kind::Float, Device::Cpu);
-        let a = augment(&img, &ops, &mut draw(5)).unwrap();
-        let b = augment(&img, &ops, &mut draw(5)).unwrap();
-        let c = augment(&img, &ops, &mut draw(6)).unwrap();
+        let a = augment(&img, &ops, 0.0, &mut draw(5)).unwrap();
+        let b = augment(&img, &ops, 0.0, &mut draw(5)).unwrap();
+        let c = augment(&img, &ops, 0.0, &mut draw(6)).unwrap();
         assert!(a.equal(&b), "the same step must give the same augmentation");
         assert!(!a.equal(&c), "another step must give another augmentation");
         // Cutout at 16² removes an 8 × 8 square clipped to the image: at least 4 × 4 pixels
@@ -241,21 +252,29 @@ mod tests {
         for n in Vec::<i64>::try_from(zero).unwrap() {
             assert!(n >= 16, "{n} zero pixels");
         }
+        // With a white fill the same draws put white where there was 0: the pixels that
+        // differ between the two fills are exactly those set to 1 in the second.
+        let white = augment(&img, &ops, 1.0, &mut draw(5)).unwrap().detach();
+        let differ = white.ne_tensor(&a.detach());
+        assert!(bool::try_from(white.masked_select(&differ).eq(1.0).all()).unwrap());
+        assert!(bool::try_from(a.detach().masked_select(&differ).eq(0.0).all()).unwrap());
+        assert!(differ.sum(Kind::Int64).int64_value(&[]) >= 4 * 16 * 3);
         let g = Tensor::run_backward(&[a.square().sum(Kind::Float)], &[&img], false, false).remove(0);
         assert!(bool::try_from(g.isfinite().all()).unwrap());
         assert!(g.abs().sum(Kind::Float).double_value(&[]) > 0.0);
         // No transforms: the images themselves.
-        assert!(augment(&img, &[], &mut draw(5)).unwrap().equal(&img));
+        assert!(augment(&img, &[], 1.0, &mut draw(5)).unwrap().equal(&img));
     }
 
     #[test]
     fn bad_shapes_are_errors() {
         let img = ramp(2, 4);
-        assert!(translate(&img, &[(0, 0)]).is_err());
-        assert!(cutout(&img, &[(0, 0)], 2).is_err());
+        assert!(translate(&img, &[(0, 0)], 0.0).is_err());
+        assert!(cutout(&img, &[(0, 0)], 2, 0.0).is_err());
         let e = augment(
             &Tensor::zeros([2, 4, 4], (Kind::Float, Device::Cpu)),
             &[Augmentation::Color],
+            0.0,
             &mut crate::rng::TorchRng { kind: Kind::Float, device: Device::Cpu },
         )
         .unwrap_err();

@@ -38,6 +38,9 @@ pub struct DiscConfig {
     /// generated, in both players' steps: any of `"color"`, `"translation"`, `"cutout"`
     /// ([`augment`]); empty (the release) = none. The projected GAN trains with all three.
     pub augment: Vec<augment::Augmentation>,
+    /// What translation uncovers and cutout removes, in [−1, 1]: 0 (DiffAugment's, the
+    /// default) is mid-grey, 1 white, the procedural datasets' background.
+    pub augment_fill: f64,
 }
 
 /// Which discriminator a run trains.
@@ -69,6 +72,7 @@ impl Default for DiscConfig {
             kind: DiscKind::Release,
             projected: ProjectedConfig::default(),
             augment: Vec::new(),
+            augment_fill: 0.0,
         }
     }
 }
@@ -99,6 +103,12 @@ impl DiscConfig {
                 "discriminator.channels is {:?}, expected {} positive widths (one per resolution 512² … 2²)",
                 self.channels,
                 CHANNELS.len()
+            )));
+        }
+        if !(-1.0..=1.0).contains(&self.augment_fill) {
+            return Err(Error::Config(format!(
+                "discriminator.augment_fill is {}, expected a pixel value in [-1, 1] (0 grey, 1 white)",
+                self.augment_fill
             )));
         }
         if self.minibatch_std_group < 0 {

@@ -292,9 +292,10 @@ impl TrainConfig {
     /// Reads, parses and validates a config file; errors name the file.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.into(), source })?;
-        // Absolute, so that a run resumes from any working directory.
-        let base = std::path::absolute(path.parent().unwrap_or(Path::new(".")))
-            .map_err(|source| Error::Io { path: path.into(), source })?;
+        // Absolute, so that a run resumes from any working directory. The file's path is made
+        // absolute before taking its folder: a bare `x.toml` has the empty path as parent.
+        let file = std::path::absolute(path).map_err(|source| Error::Io { path: path.into(), source })?;
+        let base = file.parent().unwrap_or(Path::new("/")).to_path_buf();
         Self::from_toml(&text, &base).map_err(|e| match e {
             Error::Config(m) => Error::Config(format!("{}: {m}", path.display())),
             e => e,
@@ -583,6 +584,7 @@ path = "data/x"
             ("device = \"tpu\"", "device"),
             ("precision = \"float8\"", "precision"),
             ("[discriminator]\nminibatch_std_group = -1", "discriminator.minibatch_std_group"),
+            ("[discriminator]\naugment_fill = 2.0", "discriminator.augment_fill"),
             ("[loss]\nlatent_weight = -1.0", "loss.latent_weight"),
             ("[generator]\nlatent_dim = 300\n[loss]\nlatent_weight = 1.0", "generator.latent_dim"),
             ("[loss]\ndiversity_weight = -2.0", "loss.diversity_weight"),

@@ -445,8 +445,9 @@ impl Trainer {
     /// The discriminator behind the configured augmentation (`[discriminator] augment`),
     /// drawing from (seed, step, `purpose`); `None` when no augmentation is configured.
     fn augmented(&self, step: i64, purpose: Purpose) -> Option<AugmentedJudge<'_>> {
-        let ops = &self.cfg.discriminator.augment;
-        (!ops.is_empty()).then(|| AugmentedJudge::new(self.disc.as_ref(), ops, self.rng(step, purpose)))
+        let d = &self.cfg.discriminator;
+        (!d.augment.is_empty())
+            .then(|| AugmentedJudge::new(self.disc.as_ref(), &d.augment, d.augment_fill, self.rng(step, purpose)))
     }
 
     fn discriminator_step(
