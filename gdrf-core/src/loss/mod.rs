@@ -25,6 +25,11 @@ pub struct LossConfig {
     pub r1_interval: i64,
     /// Weight of the pose loss (on fakes for D and G, on reals for D).
     pub pose_weight: f64,
+    /// Whether the discriminator's pose head also learns the poses of generated images
+    /// (true, the release). With `false` it learns from real images alone (their poses must
+    /// be known), so the generator's pose loss asks for images whose pose reads as a real
+    /// image's does, not as the discriminator has learned to read the generator's own.
+    pub d_pose_fakes: bool,
     /// Weight of the latent-prediction loss (0 in the release).
     pub latent_weight: f64,
     /// Weight of the capped mode-seeking term on the generator (0 in the release; see
@@ -65,6 +70,7 @@ impl Default for LossConfig {
             r1_gamma: 1.0,
             r1_interval: 1,
             pose_weight: 15.0,
+            d_pose_fakes: true,
             latent_weight: 0.0,
             diversity_weight: 0.0,
             diversity_cap: 0.1,
@@ -279,8 +285,10 @@ pub fn generator_loss(
 /// The discriminator's loss from its verdicts on real images and on (detached) fakes:
 /// adversarial terms ([`gan::d_adversarial`]), R1 on the reals when due ([`LossConfig::r1_due`]; lazily every
 /// `r1_interval` steps, scaled by it — `real_images` must then be the tensor `real` was
-/// computed from, with requires_grad), pose on fakes (`fake_poses: (B, 2)`) and on reals
-/// (when `real_poses` are known).
+/// computed from, with requires_grad), pose on fakes (`fake_poses: (B, 2)`; logged but not
+/// trained on with `d_pose_fakes = false`) and on reals (when `real_poses` are known).
+/// An error when the pose head would learn from nothing: `d_pose_fakes = false`, a pose
+/// weight and no real poses.
 #[allow(clippy::too_many_arguments)]
 pub fn discriminator_loss(
     real: &DiscOutput,
@@ -294,8 +302,18 @@ pub fn discriminator_loss(
 ) -> Result<Losses> {
     cfg.validate()?;
     let (d_real, d_fake) = gan::d_adversarial(cfg.adversarial, &real.logit, &fake.logit);
+    if !cfg.d_pose_fakes && cfg.pose_weight != 0.0 && real_poses.is_none() {
+        return Err(Error::Config(
+            "loss.d_pose_fakes = false trains the discriminator's pose head on real images only, \
+             and these real images have no poses (see data.poses)"
+                .into(),
+        ));
+    }
     let pose_fake = gan::pose_loss(&fake.pose, fake_poses);
-    let mut total = &d_real + &d_fake + &pose_fake * cfg.pose_weight;
+    let mut total = &d_real + &d_fake;
+    if cfg.d_pose_fakes {
+        total = total + &pose_fake * cfg.pose_weight;
+    }
     let mut terms = vec![("d_real", d_real), ("d_fake", d_fake)];
     if cfg.r1_due(at.step) {
         let r1 = gan::r1_penalty(&real.logit, real_images)?;
@@ -362,6 +380,41 @@ mod tests {
         let plain = real.detach();
         let dp = disc.forward(&plain, 1.0).unwrap();
         assert!(discriminator_loss(&dp, &plain, None, &df, &poses, None, at(8), &lazy).is_err());
+    }
+
+    #[test]
+    fn the_pose_head_can_learn_from_real_images_alone() {
+        let out = |logit: [f64; 2], pose: [f64; 4]| DiscOutput {
+            logit: Tensor::from_slice(&logit).view([2, 1]),
+            latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)),
+            pose: Tensor::from_slice(&pose).view([2, 2]),
+        };
+        let (real, fake) = (out([0.5, -0.2], [1.0, 0.0, 1.0, 0.5]), out([-0.4, 0.1], [0.0, 0.0, 0.5, 0.0]));
+        let real_poses = Tensor::from_slice(&[1.0f64, 0.25, 1.0, 0.5]).view([2, 2]);
+        let fake_poses = Tensor::from_slice(&[1.0f64, 0.0, 1.0, 0.0]).view([2, 2]);
+        let img = Tensor::zeros([2, 3, 4, 4], (Kind::Double, Device::Cpu));
+        let at = Schedule { step: 1, alpha: 1.0 };
+        let release = LossConfig { r1_interval: 2, ..Default::default() };
+        let real_only = LossConfig { d_pose_fakes: false, ..release.clone() };
+        let loss = |cfg: &LossConfig| {
+            discriminator_loss(&real, &img, Some(&real_poses), &fake, &fake_poses, None, at, cfg).unwrap()
+        };
+        let adv = Tensor::from_slice(&[-0.5f64, 0.2]).softplus().mean(Kind::Double).double_value(&[])
+            + Tensor::from_slice(&[-0.4f64, 0.1]).softplus().mean(Kind::Double).double_value(&[]);
+        // Mean of 1 − cos over both angles: the reals miss by 0.25 in one yaw, the fakes by
+        // 1 in one pitch and 0.5 in the other.
+        let pose_real = (1.0 - 0.25f64.cos()) / 4.0;
+        let pose_fake = ((1.0 - 1.0f64.cos()) + (1.0 - 0.5f64.cos())) / 4.0;
+        let (with, without) = (loss(&release), loss(&real_only));
+        assert!((with.total.double_value(&[]) - (adv + 15.0 * (pose_real + pose_fake))).abs() < 1e-12);
+        assert!((without.total.double_value(&[]) - (adv + 15.0 * pose_real)).abs() < 1e-12);
+        // The fakes' pose error is still logged.
+        assert!((without.get("d_pose_fake").unwrap().double_value(&[]) - pose_fake).abs() < 1e-12);
+        let e = discriminator_loss(&real, &img, None, &fake, &fake_poses, None, at, &real_only).unwrap_err();
+        assert!(e.to_string().contains("loss.d_pose_fakes") && e.to_string().contains("data.poses"), "{e}");
+        // Without the pose loss there is nothing to learn, and no real poses are needed.
+        let no_pose = LossConfig { pose_weight: 0.0, ..real_only };
+        discriminator_loss(&real, &img, None, &fake, &fake_poses, None, at, &no_pose).unwrap();
     }
 
     #[test]
