@@ -285,9 +285,129 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
     Ok(LoadedGenerator { vs, generator, header: ckpt.header })
 }
 
+/// Writes to `out` the generator whose every parameter is `(1 − t)·a + t·b`, for two
+/// generators of one architecture (a training checkpoint gives its EMA generator).
+///
+/// When `b` was trained on from `a`, the straight line between them can keep what each
+/// does better (weight-space ensembling, "WiSE-FT"; Wortsman et al., CVPR 2022): the
+/// shipped chairs model is such a blend (models/chairs-tiny-blend/README.md). Both must
+/// share the generator config and, where both record one, the camera; `t` lies in [0, 1].
+/// The header records both sources, their provenance and `t`.
+pub fn save_interpolated(a: &Path, b: &Path, t: f64, out: &Path) -> Result<Header> {
+    if !(0.0..=1.0).contains(&t) {
+        return Err(Error::Invalid(format!("t is {t}, expected a weight in [0, 1] (0 gives the first generator)")));
+    }
+    let ga = load_generator(a, Device::Cpu, Kind::Float)?;
+    let gb = load_generator(b, Device::Cpu, Kind::Float)?;
+    if ga.header.generator != gb.header.generator {
+        let (ja, jb) = (serde_json::to_value(&ga.header.generator), serde_json::to_value(&gb.header.generator));
+        let differ = match (ja, jb) {
+            (Ok(serde_json::Value::Object(ma)), Ok(serde_json::Value::Object(mb))) => ma
+                .iter()
+                .filter(|(k, v)| mb.get(*k) != Some(*v))
+                .map(|(k, v)| format!("{k} {v} and {}", mb.get(k).unwrap_or(&serde_json::Value::Null)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            _ => format!("{:?} and {:?}", ga.header.generator, gb.header.generator),
+        };
+        return Err(Error::Invalid(format!(
+            "{} and {} have different generator configs ({differ}); only generators of one config interpolate",
+            a.display(),
+            b.display()
+        )));
+    }
+    let camera = match (&ga.header.camera, &gb.header.camera) {
+        (Some(ca), Some(cb)) if ca != cb => {
+            return Err(Error::Invalid(format!(
+                "{} and {} were trained with different cameras ({ca:?} and {cb:?})",
+                a.display(),
+                b.display()
+            )))
+        }
+        (ca, cb) => ca.clone().or_else(|| cb.clone()),
+    };
+    let vb = gb.vs.variables();
+    let mut tensors: Vec<(String, Tensor)> = tch::no_grad(|| {
+        ga.vs.variables().into_iter().map(|(name, ta)| {
+            // Same config, so the same names and shapes.
+            let mixed = &ta * (1.0 - t) + &vb[&name] * t;
+            (name, mixed)
+        })
+    })
+    .collect();
+    tensors.sort_by(|x, y| x.0.cmp(&y.0));
+    let mut header = Header::generator(ga.header.generator.clone(), camera);
+    header.info.insert("interpolated".into(), format!("(1 - t)·from + t·to, t = {t}"));
+    header.info.insert("from".into(), a.display().to_string());
+    header.info.insert("to".into(), b.display().to_string());
+    for (prefix, h) in [("from", &ga.header), ("to", &gb.header)] {
+        for (k, v) in &h.info {
+            header.info.insert(format!("{prefix}.{k}"), v.clone());
+        }
+    }
+    save(out, &tensors, &header)?;
+    Ok(header)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn interpolation_mixes_every_parameter_and_refuses_mismatches() {
+        let dir = std::env::temp_dir().join(format!("gdrf-ckpt-mix-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cfg = GeneratorConfig { hidden_dim: 16, mapping_hidden_dim: 8, latent_dim: 4, ..Default::default() };
+        let write = |name: &str, cfg: &GeneratorConfig, camera: Option<CameraConfig>, fill: f64| {
+            let vs = nn::VarStore::new(Device::Cpu);
+            let _g = Generator::new(&vs.root(), cfg).unwrap();
+            tch::no_grad(|| {
+                for (_, mut v) in vs.variables() {
+                    let _ = v.fill_(fill);
+                }
+            });
+            let path = dir.join(name);
+            let mut header = Header::generator(cfg.clone(), camera);
+            header.info.insert("step".into(), format!("{fill}"));
+            save_generator(&path, &vs, &header).unwrap();
+            path
+        };
+        let a = write("a.safetensors", &cfg, Some(CameraConfig::chair()), 1.0);
+        let b = write("b.safetensors", &cfg, None, 3.0);
+        let out = dir.join("mix.safetensors");
+        let header = save_interpolated(&a, &b, 0.25, &out).unwrap();
+        assert_eq!(header.camera, Some(CameraConfig::chair()));
+        assert_eq!(header.info["from.step"], "1");
+        assert_eq!(header.info["to.step"], "3");
+        let mixed = load_generator(&out, Device::Cpu, Kind::Float).unwrap();
+        assert_eq!(mixed.header, header);
+        let vars = mixed.vs.variables();
+        assert!(!vars.is_empty());
+        for (name, v) in vars {
+            // 0.75 · 1 + 0.25 · 3 = 1.5, exactly in float32.
+            assert!(v.eq(1.5).all().int64_value(&[]) == 1, "{name}");
+        }
+        // The ends give the sources back exactly.
+        for (t, source) in [(0.0, &a), (1.0, &b)] {
+            save_interpolated(&a, &b, t, &out).unwrap();
+            let got = load_generator(&out, Device::Cpu, Kind::Float).unwrap().vs.variables();
+            let want = load_generator(source, Device::Cpu, Kind::Float).unwrap().vs.variables();
+            for (name, v) in got {
+                assert!(v.equal(&want[&name]), "t = {t}: {name}");
+            }
+        }
+        let e = save_interpolated(&a, &b, 1.5, &out).unwrap_err().to_string();
+        assert!(e.contains("t is 1.5") && e.contains("[0, 1]"), "{e}");
+        let e = save_interpolated(&a, &b, f64::NAN, &out).unwrap_err().to_string();
+        assert!(e.contains("t is NaN"), "{e}");
+        let wide = write("wide.safetensors", &GeneratorConfig { hidden_dim: 8, ..cfg.clone() }, None, 2.0);
+        let e = save_interpolated(&a, &wide, 0.5, &out).unwrap_err().to_string();
+        assert!(e.contains("different generator configs (hidden_dim 16 and 8)"), "{e}");
+        let car = write("car.safetensors", &cfg, Some(CameraConfig::car()), 2.0);
+        let e = save_interpolated(&a, &car, 0.5, &out).unwrap_err().to_string();
+        assert!(e.contains("different cameras"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn round_trip_is_exact() {

@@ -44,6 +44,27 @@ enum Command {
     /// pose consistency beside real-data and random-generator ends), or train the probe
     /// those scores need (`eval train-probe`).
     Eval(Box<eval_cmd::EvalArgs>),
+    /// Blend two generators of one architecture in weight space: every parameter becomes
+    /// (1 − t)·FROM + t·TO. Meant for a run trained on from another (FROM its start, TO
+    /// its end), where points between can keep what each end does better; score them with
+    /// `gdrf-train eval`. Training checkpoints give their EMA generator.
+    Interpolate(InterpolateArgs),
+}
+
+#[derive(Args)]
+struct InterpolateArgs {
+    /// The generator at t = 0 (an exported generator or a training checkpoint).
+    #[arg(long)]
+    from: PathBuf,
+    /// The generator at t = 1; same generator config and camera as --from.
+    #[arg(long)]
+    to: PathBuf,
+    /// Weight of --to, in [0, 1].
+    #[arg(long)]
+    t: f64,
+    /// Output generator (.safetensors), written atomically.
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Subcommand)]
@@ -185,6 +206,7 @@ fn main() {
         Some(Command::Dataset(cmd)) => dataset(cmd),
         Some(Command::Plot(a)) => plot_cmd::plot(a),
         Some(Command::Eval(a)) => eval_cmd::eval(*a),
+        Some(Command::Interpolate(a)) => interpolate_cmd(a),
         None if cli.train.any() => train_cmd::train(cli.train),
         None => Err(anyhow::anyhow!(
             "nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"
@@ -194,6 +216,12 @@ fn main() {
         eprintln!("error: {e:#}");
         std::process::exit(2);
     }
+}
+
+fn interpolate_cmd(a: InterpolateArgs) -> Result<()> {
+    gdrf_core::checkpoint::save_interpolated(&a.from, &a.to, a.t, &a.out)?;
+    println!("wrote {}: (1 - {t})·{} + {t}·{}", a.out.display(), a.from.display(), a.to.display(), t = a.t);
+    Ok(())
 }
 
 fn dataset(cmd: DatasetCommand) -> Result<()> {

@@ -1,0 +1,68 @@
+//! The shipped blend (models/chairs-tiny-blend) is exactly what its README's command makes
+//! from the two generators shipped beside it, and `gdrf-train interpolate` refuses bad input
+//! by name.
+mod common;
+
+use common::{repo_root, TempDir};
+use gdrf_core::checkpoint::load_generator;
+use std::process::Command;
+use tch::{Device, Kind};
+
+/// The weight of e14 in the shipped blend, as its README states.
+const T: &str = "0.4";
+
+fn interpolate(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+        .current_dir(repo_root())
+        .arg("interpolate")
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_shipped_blend_is_what_its_command_makes() {
+    let dir = TempDir::new("shipped-blend");
+    let out = dir.path("blend.safetensors");
+    let run = interpolate(&[
+        "--from",
+        "models/chairs-tiny-ms/generator.safetensors",
+        "--to",
+        "models/chairs-tiny-blend/e14.safetensors",
+        "--t",
+        T,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let made = load_generator(&out, Device::Cpu, Kind::Float).unwrap();
+    let shipped =
+        load_generator(&repo_root().join("models/chairs-tiny-blend/generator.safetensors"), Device::Cpu, Kind::Float)
+            .unwrap();
+    assert_eq!(made.header, shipped.header);
+    let want = shipped.vs.variables();
+    let got = made.vs.variables();
+    assert_eq!(got.len(), want.len());
+    assert_eq!(got.len(), 48);
+    for (name, t) in got {
+        assert!(t.equal(&want[&name]), "{name} differs from the shipped blend");
+    }
+}
+
+#[test]
+fn interpolate_refuses_bad_input_by_name() {
+    let dir = TempDir::new("blend-errors");
+    let out = dir.path("x.safetensors");
+    let ms = "models/chairs-tiny-ms/generator.safetensors";
+    for (t, to, expected) in [
+        ("1.5", ms, "t is 1.5, expected a weight in [0, 1]"),
+        ("0.5", "models/chairs-probe/probe.safetensors", "probe.safetensors"),
+        ("0.5", "models/no-such/generator.safetensors", "models/no-such/generator.safetensors"),
+    ] {
+        let run = interpolate(&["--from", ms, "--to", to, "--t", t, "--out", out.to_str().unwrap()]);
+        assert_eq!(run.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(err.contains(expected), "{expected} not in {err}");
+        assert!(!out.exists());
+    }
+}
