@@ -27,6 +27,25 @@ fn accuracy_line(text: &str, factor: &str) -> (f64, f64) {
     (nums[0], nums[1])
 }
 
+/// Every number in `a` equals the one at the same place in `b` to float32 accuracy
+/// (|a − b| ≤ 1e-9 + 1e-5·|b|; the features are float32), nulls (NaN) and the rest exactly.
+fn assert_same_numbers(a: &serde_json::Value, b: &serde_json::Value, at: &str) {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Number(x), Value::Number(y)) => {
+            let (x, y) = (x.as_f64().unwrap(), y.as_f64().unwrap());
+            assert!((x - y).abs() <= 1e-9 + 1e-5 * y.abs(), "{at}: {x} against {y}");
+        }
+        (Value::Object(x), Value::Object(y)) => {
+            assert_eq!(x.keys().collect::<Vec<_>>(), y.keys().collect::<Vec<_>>(), "{at}");
+            for (k, v) in x {
+                assert_same_numbers(v, &y[k], &format!("{at}.{k}"));
+            }
+        }
+        _ => assert_eq!(a, b, "{at}"),
+    }
+}
+
 #[test]
 fn probe_learns_and_eval_is_calibrated() {
     let tmp = TempDir::new("eval-cli");
@@ -78,27 +97,15 @@ fn probe_learns_and_eval_is_calibrated() {
     let gen = tmp.path("random.safetensors");
     save_generator(&gen, &vs, &Header::generator(cfg, Some(CameraConfig::chair()))).unwrap();
     let out = tmp.path("eval");
-    let text = gdrf_train(&[
-        "eval",
-        "--generator",
-        gen.to_str().unwrap(),
-        "--dataset",
-        d,
-        "--probe",
-        probe.to_str().unwrap(),
-        "--num",
-        "48",
-        "--swap",
-        "3",
-        "--steps",
-        "6",
-        "--real-resolution",
-        "8",
-        "--out",
-        out.to_str().unwrap(),
-        "--threads",
-        "2",
-    ]);
+    let (gen_arg, probe_arg) = (gen.to_str().unwrap(), probe.to_str().unwrap());
+    let eval_args = |more: &[&str], out: &Path| -> Vec<String> {
+        let mut v = vec!["eval", "--generator", gen_arg, "--dataset", d, "--probe", probe_arg];
+        v.extend(["--num", "48", "--swap", "3", "--steps", "6", "--real-resolution", "8", "--threads", "2"]);
+        v.extend(more);
+        v.extend(["--out", out.to_str().unwrap()]);
+        v.into_iter().map(String::from).collect()
+    };
+    let text = gdrf_train(&eval_args(&[], &out).iter().map(String::as_str).collect::<Vec<_>>());
     println!("{text}");
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("eval.json")).unwrap()).unwrap();
@@ -143,6 +150,73 @@ fn probe_learns_and_eval_is_calibrated() {
     assert!(!bad.status.success() && err.contains("--real-resolution 32"), "{err}");
     let img = image::open(out.join("report.png")).unwrap();
     assert!(img.width() >= 300 && img.height() >= 300);
+
+    // Several seeds share one real end, and each seed's result is exactly what a run with
+    // that seed alone writes (the real end's kernel distance redrawn with each seed's subsets).
+    let multi = tmp.path("eval-seeds");
+    let text = gdrf_train(&eval_args(&["--seeds", "1,0"], &multi).iter().map(String::as_str).collect::<Vec<_>>());
+    println!("{text}");
+    let read = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p).unwrap()).unwrap();
+    let (s0, s1) = (read(&multi.join("seed-0/eval.json")), read(&multi.join("seed-1/eval.json")));
+    let keys = [
+        "frechet",
+        "kernel",
+        "coverage_tv",
+        "shape_follows",
+        "appearance_follows",
+        "pose_yaw_error_deg",
+        "pose_yaw_error_in_frame_deg",
+        "pose_pitch_error_deg",
+    ];
+    for key in keys.iter().chain(&["real_at_resolution"]) {
+        assert_same_numbers(&s0[key], &json[key], key);
+    }
+    assert_eq!((s0["seed"].as_u64(), s1["seed"].as_u64()), (Some(0), Some(1)));
+    // Another seed draws another random generator: its random end differs.
+    assert_ne!(s1["frechet"]["random"], s0["frechet"]["random"]);
+    assert!(multi.join("seed-1/report.png").is_file());
+    let spread = read(&multi.join("seeds.json"));
+    assert_eq!(spread["seeds"], serde_json::json!([1, 0]));
+    let scores = spread["scores"].as_array().unwrap();
+    assert_eq!(scores.len(), keys.len());
+    for (row, key) in scores.iter().zip(keys) {
+        // NaN (a score without informative pairs, or an end without span) is null in JSON;
+        // the means count the seeds whose model, real and random values are all finite.
+        let v = |j: &serde_json::Value, end: &str| j[key][end].as_f64();
+        let triple = |j: &serde_json::Value| Some((v(j, "model")?, v(j, "real")?, v(j, "random")?));
+        let counted: Vec<(f64, f64, f64)> = [&s1, &s0].into_iter().filter_map(triple).collect();
+        assert_eq!(row["counted"].as_u64(), Some(counted.len() as u64), "{key}: {row}");
+        let n = counted.len() as f64;
+        let mean_of = |f: fn(&(f64, f64, f64)) -> f64| counted.iter().map(f).sum::<f64>() / n;
+        if !counted.is_empty() {
+            assert_eq!(row["mean"]["model"].as_f64().unwrap(), mean_of(|t| t.0), "{key}");
+            assert_eq!(row["mean"]["random"].as_f64().unwrap(), mean_of(|t| t.2), "{key}");
+        }
+        if counted.len() == 2 {
+            // Two values: the sample standard deviation is |a − b| / √2.
+            let sd = row["model_sd"].as_f64().unwrap();
+            let want = (counted[0].0 - counted[1].0).abs() / 2f64.sqrt();
+            assert!((sd - want).abs() <= 1e-12 * (1.0 + want), "{key}: {sd} against {want}");
+        }
+        let positions: Vec<f64> = [&s1, &s0].into_iter().filter_map(|j| v(j, "position")).collect();
+        if !positions.is_empty() {
+            let worst = positions.iter().copied().fold(f64::INFINITY, f64::min);
+            assert_eq!(row["worst_position"].as_f64().unwrap(), worst, "{key}");
+        }
+        assert_eq!(row["position"].as_array().unwrap().len(), 2, "{key}");
+    }
+    assert!(text.contains("seed 1") && text.contains("of means"), "{text}");
+    // A seed listed twice, and --seed with --seeds, are refused by name.
+    for (flags, expect) in [(vec!["--seeds", "2,2"], "--seeds"), (vec!["--seed", "1", "--seeds", "0,1"], "--seed")] {
+        let bad = Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+            .args(["eval", "--generator", gen.to_str().unwrap(), "--dataset", d, "--probe", probe.to_str().unwrap()])
+            .args(&flags)
+            .args(["--out", tmp.path("bad-seeds").to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&bad.stderr);
+        assert!(!bad.status.success() && err.contains(expect), "{flags:?}: {err}");
+    }
 
     // Training scores its EMA generator every eval.interval steps into metrics.jsonl.
     let config = common::tiny_training_toml(

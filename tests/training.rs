@@ -194,6 +194,9 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
     // The exported generator says which discriminator shaped it, and the evaluation reads it.
     let g = load_generator(&dir.path("a").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert_eq!(g.header.info.get("discriminator").map(String::as_str), Some("projected"));
+    // … and the resolution and samples per ray of its last step (stage 2 from step 3: 16², 4 + 4).
+    assert_eq!(g.header.info.get("resolution").map(String::as_str), Some("16"));
+    assert_eq!(g.header.info.get("samples_per_ray").map(String::as_str), Some("8"));
     assert!(gdrf_core::eval::report::trained_against_projected(&g.header));
     let g = load_generator(&dir.path("c").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert!(gdrf_core::eval::report::trained_against_projected(&g.header));

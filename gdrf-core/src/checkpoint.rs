@@ -345,6 +345,14 @@ pub fn save_interpolated(a: &Path, b: &Path, t: f64, out: &Path) -> Result<Heade
             header.info.insert(format!("{prefix}.{k}"), v.clone());
         }
     }
+    // What both sources last trained at, where they agree, for the evaluation to read.
+    for key in [crate::eval::report::RESOLUTION_INFO, "samples_per_ray"] {
+        if let (Some(x), Some(y)) = (ga.header.info.get(key), gb.header.info.get(key)) {
+            if x == y {
+                header.info.insert(key.into(), x.clone());
+            }
+        }
+    }
     save(out, &tensors, &header)?;
     Ok(header)
 }
@@ -369,6 +377,8 @@ mod tests {
             let path = dir.join(name);
             let mut header = Header::generator(cfg.clone(), camera);
             header.info.insert("step".into(), format!("{fill}"));
+            header.info.insert("resolution".into(), "32".into());
+            header.info.insert("samples_per_ray".into(), format!("{}", 8.0 * fill));
             save_generator(&path, &vs, &header).unwrap();
             path
         };
@@ -379,6 +389,9 @@ mod tests {
         assert_eq!(header.camera, Some(CameraConfig::chair()));
         assert_eq!(header.info["from.step"], "1");
         assert_eq!(header.info["to.step"], "3");
+        // The training resolution both share is kept; the samples per ray they differ in are not.
+        assert_eq!(header.info["resolution"], "32");
+        assert!(!header.info.contains_key("samples_per_ray"), "{:?}", header.info);
         let mixed = load_generator(&out, Device::Cpu, Kind::Float).unwrap();
         assert_eq!(mixed.header, header);
         let vars = mixed.vs.variables();

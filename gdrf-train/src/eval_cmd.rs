@@ -7,6 +7,7 @@ use gdrf_core::data::synth::Split;
 use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
 use gdrf_core::eval::report::{self, EvalOptions, FeatureKind};
+use gdrf_core::eval::seeds;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -106,8 +107,16 @@ struct RunArgs {
     /// GENERATOR_STEM-eval/).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// The evaluation seed: the model's codes and poses, the random-weight generator of the
+    /// random end, and the kernel distance's subsets.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Several seeds, comma-separated (e.g. 0,1,2), scored with one real end: each seed's
+    /// eval.json and report.png go to OUT/seed-S/, and OUT/seeds.json holds every score's
+    /// per-seed values and positions, their means and the worst position. The random end is
+    /// one random generator per seed, so this shows how far a verdict rests on one draw.
+    #[arg(long, value_delimiter = ',', conflicts_with = "seed")]
+    seeds: Vec<u64>,
     #[command(flatten)]
     common: CommonArgs,
 }
@@ -216,13 +225,30 @@ fn run(a: RunArgs) -> Result<()> {
         threads: a.common.threads,
         real_resolution: a.real_resolution,
     };
+    if let Some(dup) = a.seeds.iter().enumerate().find_map(|(i, s)| a.seeds[..i].contains(s).then_some(s)) {
+        bail!("--seeds lists seed {dup} twice; expected distinct seeds, e.g. 0,1,2");
+    }
     let pb = super::bar(0, "evaluating");
     let start = Instant::now();
-    let result = report::evaluate(generator, dataset, probe_path, &opts, device, &mut |stage, done, total| {
+    let mut progress = |stage: &str, done: i64, total: i64| {
         pb.set_length(total as u64);
         pb.set_position(done as u64);
         pb.set_message(stage.to_string());
-    })?;
+    };
+    if !a.seeds.is_empty() {
+        let results = report::evaluate_seeds(generator, dataset, probe_path, &opts, &a.seeds, device, &mut progress)?;
+        pb.finish_and_clear();
+        let spread = seeds::summarise(&results)?;
+        seeds::write_all(&out, &results, &spread)?;
+        print!("{}", seeds::summary(&spread));
+        println!(
+            "evaluated in {:.0} s; wrote {}/seeds.json and seed-S/eval.json, seed-S/report.png for each seed",
+            start.elapsed().as_secs_f64(),
+            out.display()
+        );
+        return Ok(());
+    }
+    let result = report::evaluate(generator, dataset, probe_path, &opts, device, &mut progress)?;
     pb.finish_and_clear();
     report::write(&out, &result)?;
     print!("{}", report::summary(&result));

@@ -9,4 +9,5 @@ pub mod lpips;
 pub mod perceptual;
 pub mod probe;
 pub mod report;
+pub mod seeds;
 pub mod weights;

@@ -30,6 +30,22 @@ use tch::{nn, Device, Kind, Tensor};
 /// The generator header's `info` key naming the discriminator it was trained against.
 pub const DISCRIMINATOR_INFO: &str = "discriminator";
 
+/// The generator header's `info` key holding the resolution of its last training step.
+pub const RESOLUTION_INFO: &str = "resolution";
+
+/// Said when a generator is scored at another resolution than the one it was trained at.
+pub fn resolution_warning(header: &crate::checkpoint::Header, resolution: i64) -> Option<String> {
+    let trained: i64 = header.info.get(RESOLUTION_INFO)?.parse().ok()?;
+    (trained != resolution).then(|| {
+        let samples = header.info.get("samples_per_ray").and_then(|s| s.parse::<i64>().ok());
+        let steps = samples.map(|n| format!(" --steps {}", (n / 2).max(2))).unwrap_or_default();
+        format!(
+            "this generator was trained at {trained}² and is rendered here at {resolution}²; \
+             `--resolution {trained}{steps}` scores it where it learned, against the real images at {trained}²"
+        )
+    })
+}
+
 /// Said when a generator trained against the projected discriminator is scored with
 /// EfficientNet-Lite0 features: the generator was optimised in that very feature space.
 pub const SHARED_FEATURES_WARNING: &str = "this generator was trained against the projected discriminator, built on \
@@ -87,7 +103,7 @@ pub struct Calibrated {
 }
 
 impl Calibrated {
-    fn new(model: f64, real: f64, random: f64) -> Self {
+    pub(crate) fn new(model: f64, real: f64, random: f64) -> Self {
         let span = real - random;
         let position = if span.abs() > 1e-12 { (model - random) / span } else { f64::NAN };
         Self { model, real, random, position }
@@ -153,6 +169,8 @@ pub struct EvalResult {
     pub generator: String,
     pub dataset: String,
     pub features: String,
+    /// The evaluation seed: codes, poses, the random generator, kernel-distance subsets.
+    pub seed: u64,
     pub images: i64,
     pub resolution: i64,
     pub samples_per_ray: i64,
@@ -374,8 +392,12 @@ pub struct Evaluator {
     reference: Vec<Vec<f64>>,
     /// The real-data end.
     pub real: Scores,
-    /// The real images at [`EvalOptions::real_resolution`], when set.
+    /// The real end's distance features, kept so that [`Evaluator::reseed`] can redraw its
+    /// kernel distance's subsets.
+    real_feats: Tensor,
+    /// The real images at [`EvalOptions::real_resolution`], when set, and their features.
     pub real_low: Option<LowResolutionEnd>,
+    low_feats: Option<Tensor>,
     pub device: Device,
 }
 
@@ -450,12 +472,14 @@ impl Evaluator {
             held_feats: Tensor::zeros([1], (Kind::Float, Device::Cpu)),
             reference: class_histograms(&held_t.classes),
             real: Scores::empty(),
+            real_feats: Tensor::zeros([1], (Kind::Float, Device::Cpu)),
             real_low: None,
+            low_feats: None,
             device,
         };
         let (held_feats, held_pred) = ev.features(&held_x, "features: held-out images", progress)?;
         ev.held_feats = held_feats;
-        ev.real = ev.score_images(&train_x, &train_t.poses, &real_swap, k, "real images", progress)?;
+        (ev.real, ev.real_feats) = ev.score_images(&train_x, &train_t.poses, &real_swap, k, "real images", progress)?;
         // The probe's coverage and pose ends are taken on held-out images: on the training
         // images it learned from they would be optimistic.
         let p_real = match held_pred {
@@ -468,14 +492,30 @@ impl Evaluator {
         if let Some(low) = opts.real_resolution {
             let blur = |x: &Tensor| through_resolution(x, low);
             let what = format!("real images at {low}²");
-            let mut s = ev.score_images(&blur(&train_x), &train_t.poses, &blur(&real_swap), k, &what, progress)?;
+            let (mut s, feats) =
+                ev.score_images(&blur(&train_x), &train_t.poses, &blur(&real_swap), k, &what, progress)?;
             // Coverage and pose on the held-out images, as for the real end.
             let p = ev.predict(&blur(&held_x))?;
             s.coverage_tv = coverage(&p.classes, &ev.reference).0;
             s.pose = pose_errors(&p, &held_t.poses);
             ev.real_low = Some(LowResolutionEnd::new(low, &s));
+            ev.low_feats = Some(feats);
         }
         Ok(ev)
+    }
+
+    /// Makes `seed` the evaluation seed: [`Evaluator::score`] then draws its codes and poses
+    /// from it, and every kernel distance (the real end's included, recomputed from its kept
+    /// features) its subsets. The real images and the probe's scores of them do not depend on
+    /// the seed, so one evaluator scores several seeds for the price of one real end, each
+    /// exactly as a fresh evaluator with that seed would.
+    pub fn reseed(&mut self, seed: u64) -> Result<()> {
+        self.opts.seed = seed;
+        self.real.kernel = distance::kernel(&self.real_feats, &self.held_feats, 50, 1000, seed)?.mean;
+        if let (Some(low), Some(feats)) = (self.real_low.as_mut(), self.low_feats.as_ref()) {
+            low.kernel = distance::kernel(feats, &self.held_feats, 50, 1000, seed)?.mean;
+        }
+        Ok(())
     }
 
     fn predict(&self, imgs: &Tensor) -> Result<Predictions> {
@@ -512,7 +552,8 @@ impl Evaluator {
         }
     }
 
-    /// Scores a set of images (`images` with the poses they show, a k × k swap matrix).
+    /// Scores a set of images (`images` with the poses they show, a k × k swap matrix);
+    /// also returns their distance features.
     #[allow(clippy::too_many_arguments)]
     fn score_images(
         &self,
@@ -522,7 +563,7 @@ impl Evaluator {
         k: i64,
         what: &str,
         progress: &mut dyn FnMut(&str, i64, i64),
-    ) -> Result<Scores> {
+    ) -> Result<(Scores, Tensor)> {
         let (feats, pred) = self.features(images, &format!("features: {what}"), progress)?;
         let fd = distance::frechet(&feats, &self.held_feats)?;
         let kid = distance::kernel(&feats, &self.held_feats, 50, 1000, self.opts.seed)?;
@@ -535,7 +576,7 @@ impl Evaluator {
         let pose = pose_errors(&p, poses);
         let ps = self.predict(swap)?;
         let (shape_follows, appearance_follows, verdicts) = swap_scores(&ps, &colour_histograms(swap), k);
-        Ok(Scores {
+        let scores = Scores {
             frechet: fd.value,
             kernel: kid.mean,
             warnings: fd.warning.into_iter().collect(),
@@ -547,7 +588,8 @@ impl Evaluator {
             samples: images.narrow(0, 0, images.size()[0].min(24)),
             swap_images: swap.shallow_clone(),
             swap_verdicts: verdicts,
-        })
+        };
+        Ok((scores, feats))
     }
 
     /// Renders `num` images (codes and poses from the evaluation seed: the same for every
@@ -581,7 +623,7 @@ impl Evaluator {
         };
         let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, &mut tick)?;
         let swap = render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
-        self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)
+        Ok(self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)?.0)
     }
 }
 
@@ -614,20 +656,62 @@ pub fn evaluate(
     device: Device,
     progress: &mut dyn FnMut(&str, i64, i64),
 ) -> Result<EvalResult> {
-    let start = std::time::Instant::now();
+    let mut all = evaluate_seeds(generator, dataset, probe_path, opts, &[opts.seed], device, progress)?;
+    Ok(all.remove(0))
+}
+
+/// [`evaluate`] once per seed in `seeds` (each seed draws the codes, the poses, the random
+/// generator and the kernel distance's subsets), sharing one real end. Each result equals
+/// what `evaluate` gives with that seed; its `seconds` counts its own scoring, and the first
+/// one also the real end's.
+pub fn evaluate_seeds(
+    generator: &Path,
+    dataset: &Path,
+    probe_path: &Path,
+    opts: &EvalOptions,
+    seeds: &[u64],
+    device: Device,
+    progress: &mut dyn FnMut(&str, i64, i64),
+) -> Result<Vec<EvalResult>> {
+    let Some(&first) = seeds.first() else {
+        return Err(Error::Invalid("eval needs at least one seed".into()));
+    };
+    let mut start = std::time::Instant::now();
     let loaded = load_generator(generator, device, Kind::Float)?;
+    let mut ev = Evaluator::new(dataset, probe_path, &EvalOptions { seed: first, ..opts.clone() }, device, progress)?;
+    let mut out = Vec::with_capacity(seeds.len());
+    for &seed in seeds {
+        ev.reseed(seed)?;
+        let what = if seeds.len() > 1 { format!(" (seed {seed})") } else { String::new() };
+        out.push(score_one(&ev, &loaded, (generator, dataset), &what, start, progress)?);
+        start = std::time::Instant::now();
+    }
+    Ok(out)
+}
+
+/// One seed's [`EvalResult`] (the seed is the evaluator's); `what` follows the progress
+/// labels.
+fn score_one(
+    ev: &Evaluator,
+    loaded: &crate::checkpoint::LoadedGenerator,
+    (generator, dataset): (&Path, &Path),
+    what: &str,
+    start: std::time::Instant,
+    progress: &mut dyn FnMut(&str, i64, i64),
+) -> Result<EvalResult> {
+    let (opts, device) = (&ev.opts, ev.device);
     let cam = loaded.header.camera.clone().unwrap_or_default();
-    let ev = Evaluator::new(dataset, probe_path, opts, device, progress)?;
     let rvs = nn::VarStore::new(device);
     let random =
         crate::rng::with_global_seed(opts.seed as i64 + 1, || Generator::new(&rvs.root(), &loaded.generator.cfg))?;
-    let model = ev.score(&loaded.generator, &cam, "model", progress)?;
-    let rand = ev.score(&random, &cam, "random generator", progress)?;
+    let model = ev.score(&loaded.generator, &cam, &format!("model{what}"), progress)?;
+    let rand = ev.score(&random, &cam, &format!("random generator{what}"), progress)?;
     let real = &ev.real;
     let mut warnings: Vec<String> = Vec::new();
     if matches!(opts.features, FeatureKind::Efficientnet) && trained_against_projected(&loaded.header) {
         warnings.push(SHARED_FEATURES_WARNING.into());
     }
+    warnings.extend(resolution_warning(&loaded.header, ev.resolution));
     for w in model.warnings.iter().chain(&rand.warnings).chain(&real.warnings) {
         if !warnings.contains(w) {
             warnings.push(w.clone());
@@ -655,6 +739,7 @@ pub fn evaluate(
                 format!("inception-v3 pool3 (2048-d, 299², {})", p.display())
             }
         },
+        seed: opts.seed,
         images: opts.num,
         resolution: ev.resolution,
         samples_per_ray: 2 * opts.steps,
@@ -727,7 +812,7 @@ fn low_resolution_line(r: &EvalResult) -> Option<String> {
     })
 }
 
-fn score_rows(r: &EvalResult) -> Vec<(&'static str, &Calibrated)> {
+pub(crate) fn score_rows(r: &EvalResult) -> Vec<(&'static str, &Calibrated)> {
     vec![
         ("frechet distance", &r.frechet),
         ("kernel distance", &r.kernel),
@@ -877,6 +962,20 @@ mod tests {
         assert!(trained_against_projected(&t));
         t.training = Some(serde_json::json!({"config": {"discriminator": {"kind": "release"}}}));
         assert!(!trained_against_projected(&t));
+    }
+
+    #[test]
+    fn scoring_at_another_resolution_than_training_is_said() {
+        use crate::checkpoint::Header;
+        let mut h = Header::generator(Default::default(), None);
+        assert_eq!(resolution_warning(&h, 64), None, "no provenance: no warning");
+        h.info.insert(RESOLUTION_INFO.into(), "32".into());
+        h.info.insert("samples_per_ray".into(), "24".into());
+        assert_eq!(resolution_warning(&h, 32), None);
+        let w = resolution_warning(&h, 64).unwrap();
+        assert!(w.contains("trained at 32²") && w.contains("`--resolution 32 --steps 12`"), "{w}");
+        h.info.remove("samples_per_ray");
+        assert!(resolution_warning(&h, 64).unwrap().contains("`--resolution 32`"));
     }
 
     #[test]

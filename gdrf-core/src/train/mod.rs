@@ -767,6 +767,11 @@ impl Trainer {
         h.info.insert("step".into(), p.step.to_string());
         h.info.insert("images_seen".into(), p.images_seen.to_string());
         h.info.insert("train_seconds".into(), format!("{:.0}", p.train_seconds));
+        // What the last step rendered at: the evaluation says when it scores the generator
+        // at another resolution.
+        let stage = self.cfg.stage((p.step - 1).max(0));
+        h.info.insert(crate::eval::report::RESOLUTION_INFO.into(), stage.resolution.to_string());
+        h.info.insert("samples_per_ray".into(), (2 * stage.num_steps).to_string());
         // Which discriminator shaped it: the evaluation warns when its distances use the
         // features a projected discriminator was built on.
         h.info.insert(crate::eval::report::DISCRIMINATOR_INFO.into(), self.cfg.discriminator.kind.name().into());
