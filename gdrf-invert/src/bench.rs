@@ -52,7 +52,7 @@ pub struct BenchArgs {
     /// Adam's learning rate of every other method.
     #[arg(long, default_value_t = InvertConfig::default().lr)]
     lr: f64,
-    /// The ground-truth probe (`gdrf-train probe`) whose structure classes on the novel
+    /// The ground-truth probe (`gdrf-train eval train-probe`) whose structure classes on the novel
     /// views are compared with the objects' own.
     #[arg(long, value_name = "FILE", default_value = "models/chairs-probe/probe.safetensors")]
     probe: PathBuf,
