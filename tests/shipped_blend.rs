@@ -40,6 +40,17 @@ fn the_shipped_blend_is_what_its_command_makes() {
         load_generator(&repo_root().join("models/chairs-tiny-blend/generator.safetensors"), Device::Cpu, Kind::Float)
             .unwrap();
     assert_eq!(made.header, shipped.header);
+    // Both sources last trained in chairs-tiny's 32² stage (12 + 12 samples), and the blend
+    // says so, for the evaluation's resolution warning.
+    for (key, want) in [("resolution", "32"), ("samples_per_ray", "24")] {
+        for prefix in ["", "from.", "to."] {
+            assert_eq!(
+                shipped.header.info.get(&format!("{prefix}{key}")).map(String::as_str),
+                Some(want),
+                "{prefix}{key}"
+            );
+        }
+    }
     let want = shipped.vs.variables();
     let got = made.vs.variables();
     assert_eq!(got.len(), want.len());
