@@ -153,8 +153,14 @@ fn probe_learns_and_eval_is_calibrated() {
 
     // Several seeds share one real end, and each seed's result is exactly what a run with
     // that seed alone writes (the real end's kernel distance redrawn with each seed's subsets).
+    // This run names the samples per ray `--samples`, gdrf-invert's name for them, and must
+    // score seed 0 exactly as the first run did with `--steps`.
     let multi = tmp.path("eval-seeds");
-    let text = gdrf_train(&eval_args(&["--seeds", "1,0"], &multi).iter().map(String::as_str).collect::<Vec<_>>());
+    let args: Vec<String> = eval_args(&["--seeds", "1,0"], &multi)
+        .into_iter()
+        .map(|a| if a == "--steps" { "--samples".to_string() } else { a })
+        .collect();
+    let text = gdrf_train(&args.iter().map(String::as_str).collect::<Vec<_>>());
     println!("{text}");
     let read = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p).unwrap()).unwrap();
     let (s0, s1) = (read(&multi.join("seed-0/eval.json")), read(&multi.join("seed-1/eval.json")));

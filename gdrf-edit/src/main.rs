@@ -81,7 +81,8 @@ struct RenderArgs {
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
     /// Coarse samples per ray N (the importance pass adds N more). Authors' renders use 96.
-    #[arg(long, default_value_t = 36)]
+    /// `--samples` is the same flag, as in gdrf-invert, where `--steps` counts optimisation steps.
+    #[arg(long, visible_alias = "samples", default_value_t = 36)]
     steps: usize,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
@@ -319,4 +320,18 @@ fn render(a: RenderArgs) -> Result<()> {
         s = config.samples_per_ray(),
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn render_takes_the_samples_per_ray_as_steps_or_samples() {
+        let steps = |flag: &str| match Cli::try_parse_from(["gdrf-edit", "render", flag, "8"]).unwrap().command {
+            Command::Render(a) => a.steps,
+            _ => unreachable!("parsed as render"),
+        };
+        assert_eq!((steps("--steps"), steps("--samples")), (8, 8));
+    }
 }

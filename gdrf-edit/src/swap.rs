@@ -59,8 +59,9 @@ pub struct ViewArgs {
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more).
-    #[arg(long, default_value_t = 36)]
+    /// Coarse samples per ray N (the importance pass adds N more). `--samples` is the same
+    /// flag, as in gdrf-invert, where `--steps` counts optimisation steps.
+    #[arg(long, visible_alias = "samples", default_value_t = 36)]
     steps: usize,
     /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
     #[arg(long, default_value_t = 1.0)]
@@ -508,6 +509,19 @@ mod tests {
     use gdrf_core::field::generator::Generator;
     use gdrf_core::{CameraConfig, GeneratorConfig};
     use tch::{nn, Device};
+
+    #[test]
+    fn samples_is_the_samples_per_ray_flag_as_in_gdrf_invert() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            view: ViewArgs,
+        }
+        let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.steps;
+        assert_eq!(steps(&["x"]), 36);
+        assert_eq!(steps(&["x", "--steps", "8"]), 8);
+        assert_eq!(steps(&["x", "--samples", "8"]), 8);
+    }
 
     fn small() -> (nn::VarStore, Generator) {
         let vs = nn::VarStore::new(Device::Cpu);

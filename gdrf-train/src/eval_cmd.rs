@@ -89,8 +89,9 @@ struct RunArgs {
     /// Render resolution (default: the dataset's).
     #[arg(long)]
     resolution: Option<i64>,
-    /// Samples per ray (coarse; as many fine).
-    #[arg(long, default_value_t = 24)]
+    /// Samples per ray (coarse; as many fine). `--samples` is the same flag, as in
+    /// gdrf-invert, where `--steps` counts optimisation steps.
+    #[arg(long, visible_alias = "samples", default_value_t = 24)]
     steps: i64,
     /// Also score the real images seen at this lower resolution (antialiased down, then
     /// back up): what the resolution alone costs real data, the reference for a generator
