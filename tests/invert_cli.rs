@@ -87,6 +87,20 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
         Features::load(&out.join("features.safetensors"), &m.generator, &generator_id(&m.vs, &m.generator)).unwrap();
     let p = f.pose.unwrap();
     assert!((p.0.to_degrees() - 62.5).abs() < 1e-9 && (p.1.to_degrees() + 8.2).abs() < 1e-9);
+    assert_eq!(report["camera"]["fov_deg"], 50.0, "the generator's own camera");
+
+    // --camera takes a preset instead of the generator's camera (as in gdrf-edit): without
+    // --pose the photo starts at that camera's mean pose (car: pitch 1.2217 rad, yaw 0).
+    let car = tmp.path("car");
+    let mut args = vec![photo.as_str(), "--camera", "car", "--out", car.to_str().unwrap()];
+    args.extend(small);
+    ok(&args);
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(car.join("invert.json")).unwrap()).unwrap();
+    assert_eq!(report["camera"]["fov_deg"], 30.0);
+    let start = &report["start_pose_deg"];
+    assert!((start[0].as_f64().unwrap() - 1.2217f64.to_degrees()).abs() < 1e-9, "{start}");
+    assert_eq!(start[1].as_f64(), Some(0.0), "{start}");
 
     // Bad inputs: each named, and the output folder is never created for them.
     let fresh = tmp.path("never");

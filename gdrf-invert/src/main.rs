@@ -114,6 +114,10 @@ struct InvertArgs {
     /// gdrf-edit's --pitch/--yaw). Default: the camera's mean pose.
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
     pose: Option<String>,
+    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
+    /// camera stored with the generator, as gdrf-edit's --camera.
+    #[arg(long, value_parser = ["chair", "car", "carla"])]
+    camera: Option<String>,
     /// A mask image of the photo's size: black pixels become background (white).
     #[arg(long, value_name = "FILE")]
     mask: Option<PathBuf>,
@@ -258,7 +262,11 @@ fn run(a: InvertArgs) -> Result<()> {
     let gen_path = a.generator.clone().unwrap_or_else(default_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
-    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
+    let cam = match &a.camera {
+        Some(name) => gdrf_core::CameraConfig::preset(name)?,
+        None => m.header.camera.clone().unwrap_or_default(),
+    };
+    let g = &m.generator;
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
     let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, a.resolution, dev)?;
@@ -401,6 +409,7 @@ fn run(a: InvertArgs) -> Result<()> {
         "init": a.init.as_ref().map(|p| p.display().to_string()),
         "generator": gen_path.display().to_string(),
         "generator_id": id,
+        "camera": cam,
         "pose_deg": [pose.0.to_degrees(), pose.1.to_degrees()],
         "start_pose_deg": [start_pose.0.to_degrees(), start_pose.1.to_degrees()],
         "refine_pose": cfg.refine_pose,
