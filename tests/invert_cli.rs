@@ -136,7 +136,10 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
         v.into_iter().map(String::from).collect()
     };
     let said = ok(&as_args(&small("4", &[])));
-    assert!(said.contains("held-out w_s MSE"), "{said}");
+    // Each validation is reported as it happens, also when the output is not a terminal.
+    for step in [2, 4] {
+        assert!(said.contains(&format!("step {step}: held-out w_s MSE")), "{said}");
+    }
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(tmp.path("init.safetensors.json")).unwrap()).unwrap();
     assert_eq!(report["evaluations"].as_array().unwrap().len(), 2);

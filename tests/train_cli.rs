@@ -140,3 +140,19 @@ fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
     let img = image::open(run.join("losses.png")).unwrap();
     assert_eq!((img.width(), img.height()), (4 * 360, 2 * 240));
 }
+
+#[test]
+fn a_rollback_is_reported_where_the_run_is_watched() {
+    // Three non-finite steps in a row roll the run back; the console (here a pipe, so the
+    // progress bar is hidden) says so, not only metrics.jsonl.
+    let dir = TempDir::new("cli-rollback");
+    let config = write_config(&dir.0, 4);
+    let mut text = std::fs::read_to_string(&config).unwrap();
+    text.push_str("\n[debug]\ninject_nonfinite_steps = [1, 2, 3]\n\n[guard]\nrollback_after = 3\n");
+    std::fs::write(&config, text).unwrap();
+    let run = dir.path("run");
+    let out = bin().arg("--config").arg(&config).arg("--run-dir").arg(&run).output().unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    assert!(said.contains("step 3: non-finite steps in a row; rolled back to step 0 with lr × 0.5"), "{said}");
+}

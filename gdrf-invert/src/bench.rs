@@ -14,6 +14,7 @@ use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{load_effnet, render_views, InvertConfig, Inverter, Perceptual, Start};
 use gdrf_core::plot::{draw_panels, Panel, Series};
 use gdrf_core::{CameraConfig, Generator};
+use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use std::path::PathBuf;
 use tch::{Device, Kind, Tensor};
@@ -238,7 +239,14 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     );
     let mut points: Vec<Point> = Vec::new();
     let mut pose_errors = Vec::new();
+    // Optimisation steps over every method and object (the reference's dominate).
+    let total: usize = methods.iter().map(|(_, _, c)| c.steps).sum();
+    let bar = ProgressBar::new((total * cases.len()) as u64).with_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
+            .expect("valid template"),
+    );
     for (name, use_init, cfg) in &methods {
+        bar.set_message(name.clone());
         // Sums over the cases, per checkpoint.
         let checkpoints = checkpoints(cfg.steps);
         let mut sums = vec![[0.0f64; 7]; checkpoints.len()];
@@ -261,12 +269,16 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             let start_seconds = t0.elapsed().as_secs_f64();
             let mut inv = Inverter::new(g, &cam, &case.photo, &start, cfg, Some(&perc))?;
             let mut last = (0usize, 0.0f64);
+            let counted = bar.position();
             for (ci, &cp) in checkpoints.iter().enumerate() {
                 while inv.history.len() < cp && !inv.done() {
                     if let Some(l) = inv.step()? {
                         last = (l.step + 1, l.seconds);
                     }
+                    bar.set_position(counted + inv.history.len() as u64);
                 }
+                // Steps an early stop skips count as done.
+                bar.set_position(counted + cp as u64);
                 let s = score(g, &cam, &inv.features(), case, res, a.samples, &judge)?;
                 let row = &mut sums[ci];
                 row[0] += last.1 + start_seconds;
@@ -275,7 +287,6 @@ pub fn bench(a: BenchArgs) -> Result<()> {
                 }
                 row[6] += last.0 as f64;
             }
-            eprint!(".");
         }
         let n = cases.len() as f64;
         for (ci, &cp) in checkpoints.iter().enumerate() {
@@ -292,8 +303,10 @@ pub fn bench(a: BenchArgs) -> Result<()> {
                 structure_agreement: r[5] / n,
             });
         }
-        eprintln!(" {name}");
+        // Above the bar, and in logs too (a hidden bar's println writes nothing).
+        bar.suspend(|| eprintln!("done: {name}"));
     }
+    bar.finish_and_clear();
     write_outputs(&a, &points, &pose_errors, truth_agreement, &gen_path, dev, threads)
 }
 

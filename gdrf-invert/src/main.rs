@@ -488,10 +488,13 @@ fn train_init(a: TrainInitArgs) -> Result<()> {
     let (_, evals) = init_stage::train(g, &cam, &id, &tuples, &cfg, &a.out, a.resume, &mut |step, ev| {
         bar.set_position(step as u64);
         if let Some(e) = ev {
-            bar.println(format!(
-                "step {}: held-out w_s MSE {:.4} (mean code {:.4}), pitch error {:.1}°, yaw error {:.1}°",
-                e.step, e.w_mse, e.mean_code_w_mse, e.pitch_error_deg, e.yaw_error_deg
-            ));
+            // Above the bar, and in logs too (a hidden bar's println writes nothing).
+            bar.suspend(|| {
+                eprintln!(
+                    "step {}: held-out w_s MSE {:.4} (mean code {:.4}), pitch error {:.1}°, yaw error {:.1}°",
+                    e.step, e.w_mse, e.mean_code_w_mse, e.pitch_error_deg, e.yaw_error_deg
+                )
+            });
         }
     })?;
     bar.finish_and_clear();

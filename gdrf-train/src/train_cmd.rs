@@ -204,10 +204,13 @@ pub fn train(a: TrainArgs) -> Result<()> {
         bar.set_prefix(format!("stage {}", r.stage));
         bar.set_position(p.step as u64);
         if let Some(to) = r.rolled_back_to {
-            bar.println(format!(
-                "step {}: non-finite steps in a row; rolled back to step {to} with lr × {}",
-                r.step, p.lr_scale
-            ));
+            // Above the bar, and in logs too (a hidden bar's println writes nothing).
+            bar.suspend(|| {
+                eprintln!(
+                    "step {}: non-finite steps in a row; rolled back to step {to} with lr × {}",
+                    r.step, p.lr_scale
+                )
+            });
         }
         if a.quiet && r.step % cfg.schedule.log_interval == 0 {
             println!("step {} {msg}", r.step);
