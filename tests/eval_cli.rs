@@ -259,11 +259,14 @@ fn probe_learns_and_eval_is_calibrated() {
 
 #[test]
 fn eval_errors_name_what_is_missing() {
-    let out =
-        Command::new(env!("CARGO_BIN_EXE_gdrf-train")).args(["eval", "--generator", "g.safetensors"]).output().unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("--dataset") && err.contains("--probe"), "{err}");
+    // --checkpoint is --generator's other name, as in gdrf-edit and gdrf-invert.
+    for flag in ["--generator", "--checkpoint"] {
+        let out =
+            Command::new(env!("CARGO_BIN_EXE_gdrf-train")).args(["eval", flag, "g.safetensors"]).output().unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("--dataset") && err.contains("--probe"), "{flag}: {err}");
+    }
     let out = Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
         .args(["eval", "train-probe", "--dataset", "no/such/dataset", "--backbone", "scratch"])
         .output()

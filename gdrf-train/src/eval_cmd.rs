@@ -71,8 +71,8 @@ struct CommonArgs {
 #[derive(Args)]
 struct RunArgs {
     /// The generator to score (a generator or training checkpoint; training checkpoints
-    /// give their EMA generator).
-    #[arg(long)]
+    /// give their EMA generator). `--checkpoint` is the same, as in gdrf-edit and gdrf-invert.
+    #[arg(long, visible_alias = "checkpoint")]
     generator: Option<PathBuf>,
     /// The procedural dataset it was trained on; its held-out split is the reference.
     #[arg(long)]
