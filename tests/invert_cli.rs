@@ -184,3 +184,69 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
         serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
     assert!(report["init"].as_str().unwrap().ends_with("init.safetensors"));
 }
+
+#[test]
+fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
+    let tmp = TempDir::new("invert-bench");
+    // A small procedural dataset: its held-out objects are what the bench inverts.
+    let data = tmp.path("chairs");
+    let opts = SynthOptions {
+        count: 12,
+        resolution: 16,
+        supersample: 1,
+        held_out_fraction: 0.5,
+        shadows: false,
+        ..Default::default()
+    };
+    gdrf_core::data::synth::generate(&data, &opts, 2, &|| {}).unwrap();
+    let stem = tmp.path("bench");
+    let said = ok(&[
+        "bench",
+        "--dataset",
+        data.to_str().unwrap(),
+        "--images",
+        "1",
+        "--views",
+        "1",
+        "--reference-steps",
+        "8",
+        "--steps",
+        "4",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--out",
+        stem.to_str().unwrap(),
+    ]);
+    for ext in ["json", "png", "md"] {
+        assert!(stem.with_extension(ext).is_file(), "bench.{ext} missing");
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json")).unwrap()).unwrap();
+    // The shipped defaults, found from the test's working folder (not the repository's) and
+    // written relative to the repository: no machine's folder in the committed figures.
+    assert_eq!(json["generator"], "models/chairs-tiny/generator.safetensors");
+    assert_eq!(json["probe"], "models/chairs-probe/probe.safetensors");
+    let points = json["points"].as_array().unwrap();
+    let mut methods: Vec<&str> = points.iter().map(|p| p["method"].as_str().unwrap()).collect();
+    methods.dedup();
+    // Without --init: the reference and the eight speed options, each from the mean code.
+    assert_eq!(methods.len(), 9, "{methods:?}");
+    assert_eq!(said.matches("done: ").count(), 9, "{said}");
+    assert!(methods.iter().all(|m| m.starts_with("mean code")), "{methods:?}");
+    let last = |m: &str| points.iter().rev().find(|p| p["method"] == m).unwrap()["steps"].as_u64();
+    assert_eq!(last(methods[0]), Some(8), "the reference runs --reference-steps");
+    assert_eq!(last(methods[1]), Some(4), "the others run --steps");
+    // Before any step every method holds the same start and is scored the same way, so
+    // their rows agree exactly.
+    let starts: Vec<&serde_json::Value> = points.iter().filter(|p| p["steps"] == 0).collect();
+    assert_eq!(starts.len(), 9);
+    for p in &starts {
+        for key in ["input_psnr", "input_ssim", "novel_psnr", "novel_ssim", "structure_agreement"] {
+            assert_eq!(p[key], starts[0][key], "{key} of {} at 0 steps", p["method"]);
+        }
+    }
+    let table = std::fs::read_to_string(stem.with_extension("md")).unwrap();
+    assert!(table.contains("first point with ≥ 95 % of the gain"), "{table}");
+}

@@ -35,6 +35,12 @@ pub fn repo_root() -> PathBuf {
     }
 }
 
+/// `path` as written into committed figures: relative to the repository when it lies in it
+/// (a shipped model), so that no machine's folder appears in them.
+pub fn shown(path: &Path) -> String {
+    path.strip_prefix(repo_root()).unwrap_or(path).display().to_string()
+}
+
 /// `$GDRF_PYTHON`, else the project's `.venv` (made by `scripts/setup.sh`).
 pub fn python() -> PathBuf {
     std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo_root().join(".venv/bin/python"))

@@ -20,9 +20,10 @@ use tch::{Device, Kind, Tensor};
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Generator checkpoint benchmarked beside the analytic scene.
-    #[arg(long, value_name = "FILE", default_value = "models/chairs-tiny/generator.safetensors")]
-    checkpoint: PathBuf,
+    /// Generator checkpoint benchmarked beside the analytic scene; default: the shipped
+    /// models/chairs-tiny. --generator is the same.
+    #[arg(long, visible_alias = "generator", value_name = "FILE")]
+    checkpoint: Option<PathBuf>,
     /// Image sizes (square).
     #[arg(long, value_delimiter = ',', default_value = "64,128")]
     resolutions: Vec<i64>,
@@ -54,6 +55,15 @@ pub struct BenchArgs {
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     device: String,
+}
+
+impl BenchArgs {
+    /// --checkpoint, else the shipped model (found from any working folder).
+    fn checkpoint(&self) -> PathBuf {
+        self.checkpoint
+            .clone()
+            .unwrap_or_else(|| gdrf_core::bench::repo_root().join("models/chairs-tiny/generator.safetensors"))
+    }
 }
 
 /// One renderer configuration.
@@ -188,8 +198,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
-    let loaded = load_generator(&a.checkpoint, dev, Kind::Float)
-        .with_context(|| format!("loading --checkpoint {}", a.checkpoint.display()))?;
+    let loaded = load_generator(&a.checkpoint(), dev, Kind::Float)
+        .with_context(|| format!("loading --checkpoint {}", a.checkpoint().display()))?;
     let camera = loaded.header.camera.clone().unwrap_or_default();
     let latent = loaded.generator.cfg.latent_dim as i64;
     let poses: Vec<(f64, f64)> =
@@ -241,7 +251,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     }
     let doc = json!({
         "title": "renderer: time against error",
-        "checkpoint": a.checkpoint.display().to_string(),
+        "checkpoint": gdrf_core::bench::shown(&a.checkpoint()),
         "device": format!("{dev:?}"),
         "threads": threads,
         "seeds": a.seeds,
@@ -407,7 +417,7 @@ fn pytorch_reference(a: &BenchArgs, poses: &[(f64, f64)], res: i64, rust_images:
     let tmp = std::env::temp_dir().join(format!("gdrf-bench-render-{}-{res}.safetensors", std::process::id()));
     let n = release_steps(res);
     let args: Vec<String> = vec![
-        a.checkpoint.display().to_string(),
+        a.checkpoint().display().to_string(),
         "--seeds".into(),
         a.seeds.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(","),
         "--poses".into(),

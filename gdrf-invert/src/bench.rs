@@ -54,9 +54,10 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = InvertConfig::default().lr)]
     lr: f64,
     /// The ground-truth probe (`gdrf-train eval train-probe`) whose structure classes on the novel
-    /// views are compared with the objects' own.
-    #[arg(long, value_name = "FILE", default_value = "models/chairs-probe/probe.safetensors")]
-    probe: PathBuf,
+    /// views are compared with the objects' own; default: the shipped
+    /// models/chairs-probe.
+    #[arg(long, value_name = "FILE")]
+    probe: Option<PathBuf>,
     /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
     #[arg(long, default_value = "docs/bench/invert")]
     out: PathBuf,
@@ -169,7 +170,9 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             structure,
         });
     }
-    let probe = Probe::load(&a.probe, dev).with_context(|| format!("loading --probe {}", a.probe.display()))?;
+    let probe_path =
+        a.probe.clone().unwrap_or_else(|| gdrf_core::bench::repo_root().join("models/chairs-probe/probe.safetensors"));
+    let probe = Probe::load(&probe_path, dev).with_context(|| format!("loading --probe {}", probe_path.display()))?;
     let effnet = load_effnet(dev)?;
     let perc = Perceptual::effnet(&effnet);
     let judge = Judge { probe: &probe, effnet: &effnet };
@@ -307,7 +310,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         bar.suspend(|| eprintln!("done: {name}"));
     }
     bar.finish_and_clear();
-    write_outputs(&a, &points, &pose_errors, truth_agreement, &gen_path, dev, threads)
+    write_outputs(&a, &points, &pose_errors, truth_agreement, [&gen_path, &probe_path], dev, threads)
 }
 
 fn write_outputs(
@@ -315,7 +318,7 @@ fn write_outputs(
     points: &[Point],
     pose_errors: &[(f64, f64)],
     truth_agreement: f64,
-    gen: &std::path::Path,
+    [gen, probe]: [&std::path::Path; 2],
     dev: Device,
     threads: usize,
 ) -> Result<()> {
@@ -356,19 +359,13 @@ fn write_outputs(
         }
     };
     let json = serde_json::json!({
-        // Relative to the repository for the shipped model: no build machine's path in
-        // the committed figures.
-        "generator": gen
-            .strip_prefix(gdrf_core::bench::repo_root())
-            .unwrap_or(gen)
-            .display()
-            .to_string(),
+        "generator": gdrf_core::bench::shown(gen),
         "dataset": a.dataset.display().to_string(),
         "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
         "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
         "device": format!("{dev:?}"), "threads": threads,
         "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
-        "probe": a.probe.display().to_string(),
+        "probe": gdrf_core::bench::shown(probe),
         "structure_agreement_of_the_ground_truth_views": truth_agreement,
         "points": points,
     });
