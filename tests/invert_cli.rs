@@ -54,6 +54,22 @@ fn photo_in(dir: &TempDir) -> String {
     path.display().to_string()
 }
 
+/// A small procedural dataset (12 images at 16², half held out) in `dir`: its held-out
+/// objects are what `gdrf-invert bench` inverts.
+fn bench_dataset(dir: &TempDir) -> std::path::PathBuf {
+    let data = dir.path("chairs");
+    let opts = SynthOptions {
+        count: 12,
+        resolution: 16,
+        supersample: 1,
+        held_out_fraction: 0.5,
+        shadows: false,
+        ..Default::default()
+    };
+    gdrf_core::data::synth::generate(&data, &opts, 2, &|| {}).unwrap();
+    data
+}
+
 #[test]
 fn a_photo_inverts_and_bad_inputs_are_named() {
     let tmp = TempDir::new("invert-cli");
@@ -183,22 +199,35 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
     assert!(report["init"].as_str().unwrap().ends_with("init.safetensors"));
+
+    // The bench with this initialiser: ten methods, each starting from its prediction but
+    // one (the mean code, for comparison), and the file named in the JSON.
+    let data = bench_dataset(&tmp);
+    let stem = tmp.path("bench");
+    let d = data.to_str().unwrap();
+    let s = stem.to_str().unwrap();
+    let small = ["--images", "1", "--views", "1", "--reference-steps", "4", "--steps", "2", "--resolution", "16"];
+    let mut args = vec!["bench", "--init", i, "--dataset", d, "--samples", "4", "--out", s];
+    args.extend(small);
+    ok(&args);
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(json["init"].as_str(), Some(i));
+    let mut methods: Vec<&str> =
+        json["points"].as_array().unwrap().iter().map(|p| p["method"].as_str().unwrap()).collect();
+    methods.dedup();
+    assert_eq!(methods.len(), 10, "{methods:?}");
+    assert_eq!(methods.iter().filter(|m| m.starts_with("mean code")).count(), 1, "{methods:?}");
+    for angle in ["pitch", "yaw"] {
+        let e = json["initialiser_pose_error_deg"][angle].as_f64().unwrap();
+        assert!((0.0..=180.0).contains(&e), "{angle} error {e}");
+    }
 }
 
 #[test]
 fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     let tmp = TempDir::new("invert-bench");
-    // A small procedural dataset: its held-out objects are what the bench inverts.
-    let data = tmp.path("chairs");
-    let opts = SynthOptions {
-        count: 12,
-        resolution: 16,
-        supersample: 1,
-        held_out_fraction: 0.5,
-        shadows: false,
-        ..Default::default()
-    };
-    gdrf_core::data::synth::generate(&data, &opts, 2, &|| {}).unwrap();
+    let data = bench_dataset(&tmp);
     let stem = tmp.path("bench");
     let said = ok(&[
         "bench",

@@ -360,6 +360,7 @@ fn write_outputs(
     };
     let json = serde_json::json!({
         "generator": gdrf_core::bench::shown(gen),
+        "init": a.init.as_deref().map(gdrf_core::bench::shown),
         "dataset": a.dataset.display().to_string(),
         "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
         "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
