@@ -35,6 +35,11 @@ pub fn repo_root() -> PathBuf {
     }
 }
 
+/// The shipped generator (models/chairs-tiny), the default of the commands that need one.
+pub fn shipped_generator() -> PathBuf {
+    repo_root().join("models/chairs-tiny/generator.safetensors")
+}
+
 /// `path` as written into committed figures: relative to the repository when it lies in it
 /// (a shipped model), so that no machine's folder appears in them.
 pub fn shown(path: &Path) -> String {

@@ -60,9 +60,7 @@ pub struct BenchArgs {
 impl BenchArgs {
     /// --checkpoint, else the shipped model (found from any working folder).
     fn checkpoint(&self) -> PathBuf {
-        self.checkpoint
-            .clone()
-            .unwrap_or_else(|| gdrf_core::bench::repo_root().join("models/chairs-tiny/generator.safetensors"))
+        self.checkpoint.clone().unwrap_or_else(gdrf_core::bench::shipped_generator)
     }
 }
 

@@ -139,7 +139,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     if a.images == 0 || a.views == 0 || a.steps == 0 || a.reference_steps == 0 {
         bail!("--images, --views, --steps and --reference-steps must be at least 1");
     }
-    let gen_path = a.generator.clone().unwrap_or_else(crate::default_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);

@@ -221,10 +221,6 @@ fn main() {
     }
 }
 
-pub(crate) fn default_generator() -> PathBuf {
-    gdrf_core::bench::repo_root().join("models/chairs-tiny/generator.safetensors")
-}
-
 fn run(a: InvertArgs) -> Result<()> {
     let photo_path = a.photo.clone().expect("clap requires the photo");
     if !(a.pose_lr > 0.0 && a.pose_lr.is_finite()) {
@@ -259,7 +255,7 @@ fn run(a: InvertArgs) -> Result<()> {
         bail!("--render-resolution {view_res}: expected 4 to 1024");
     }
     let pose = a.pose.as_deref().map(|p| parse_pose_degrees(p, "--pose")).transpose()?;
-    let gen_path = a.generator.clone().unwrap_or_else(default_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let cam = match &a.camera {
@@ -458,7 +454,7 @@ fn train_init(a: TrainInitArgs) -> Result<()> {
     if !a.resume && a.out.exists() {
         bail!("--out {} exists; pass --resume to continue it or choose another file", a.out.display());
     }
-    let gen_path = a.generator.clone().unwrap_or_else(default_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
