@@ -151,6 +151,35 @@ fn probe_learns_and_eval_is_calibrated() {
     let img = image::open(out.join("report.png")).unwrap();
     assert!(img.width() >= 300 && img.height() >= 300);
 
+    // Truncation to ψ = 0 renders every code as the mean code: each swap row is one image
+    // repeated, so structure always follows the row (1 exactly) and colour never follows the
+    // column (0 exactly) wherever a pair is counted. Only the model is truncated: both ends
+    // repeat the untruncated run's.
+    assert_eq!(json["psi"].as_f64(), Some(1.0));
+    let trunc_out = tmp.path("eval-psi0");
+    let text = gdrf_train(&eval_args(&["--psi", "0"], &trunc_out).iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(text.contains("model truncated to ψ = 0"), "{text}");
+    let t: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(trunc_out.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(t["psi"].as_f64(), Some(0.0));
+    for key in ["frechet", "kernel", "coverage_tv", "pose_yaw_error_deg", "pose_pitch_error_deg"] {
+        for end in ["real", "random"] {
+            assert_same_numbers(&t[key][end], &json[key][end], &format!("{key}.{end}"));
+        }
+    }
+    assert_ne!(t["frechet"]["model"], json["frechet"]["model"]);
+    assert!(matches!(t["shape_follows"]["model"].as_f64(), None | Some(1.0)), "{}", t["shape_follows"]);
+    assert!(matches!(t["appearance_follows"]["model"].as_f64(), None | Some(0.0)), "{}", t["appearance_follows"]);
+    for bad in ["--psi=-0.5", "--psi=NaN"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+            .args(["eval", "--generator", gen_arg, "--dataset", d, "--probe", probe_arg, bad])
+            .args(["--out", tmp.path("bad-psi").to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains("--psi") && err.contains("≥ 0"), "{bad}: {err}");
+    }
+
     // Several seeds share one real end, and each seed's result is exactly what a run with
     // that seed alone writes (the real end's kernel distance redrawn with each seed's subsets).
     // This run names the samples per ray `--samples`, gdrf-invert's name for them, and must

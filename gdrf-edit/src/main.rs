@@ -254,7 +254,7 @@ fn render(a: RenderArgs) -> Result<()> {
         _ => a.appearance_seeds.clone(),
     };
     let z_a = Tensor::cat(&app_seeds.iter().map(|&s| code(s)).collect::<Vec<_>>(), 0);
-    let trunc = (a.psi != 1.0).then(|| generator.truncation(a.psi, 10_000, 0));
+    let trunc = generator.truncation_at(a.psi);
     let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
 
     let pitch = a.pitch.map(f64::to_radians).unwrap_or(camera.v_mean);

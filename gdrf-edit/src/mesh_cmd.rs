@@ -70,7 +70,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let shape = resolve(&model, &a.source, "--source")?;
     // Without --appearance-from the source's own appearance: resolved once.
     let other = a.appearance_from.as_ref().map(|s| resolve(&model, s, "--appearance-from")).transpose()?;
-    let trunc = (a.psi != 1.0).then(|| g.truncation(a.psi, 10_000, 0));
+    let trunc = g.truncation_at(a.psi);
     let lat = latents(g, &shape, other.as_ref().unwrap_or(&shape), trunc.as_ref());
     let start = Instant::now();
     let half = camera_half_extent(&model.camera);

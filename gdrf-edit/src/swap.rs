@@ -264,7 +264,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
         (resolve(&model, &a.shape_from, "--shape-from")?, resolve(&model, &a.appearance_from, "--appearance-from")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
     let g = &model.generator;
-    let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
+    let trunc = g.truncation_at(a.view.psi);
     let lat = latents(g, &shape, &appearance, trunc.as_ref());
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
@@ -314,7 +314,7 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
         .map(|(i, s)| resolve(&model, s, &format!("--sources (entry {})", i + 1)))
         .collect::<Result<_>>()?;
     let k = features.len() as i64;
-    let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
+    let trunc = g.truncation_at(a.view.psi);
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
@@ -451,7 +451,7 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
         What::Appearance => Interpolate::Appearance,
         What::Both => Interpolate::Both,
     };
-    let trunc = (a.view.psi != 1.0).then(|| g.truncation(a.view.psi, 10_000, 0));
+    let trunc = g.truncation_at(a.view.psi);
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();

@@ -98,6 +98,12 @@ struct RunArgs {
     /// trained at it (e.g. 32 for `chairs-tiny`). Printed and written as `real_at_resolution`.
     #[arg(long)]
     real_resolution: Option<i64>,
+    /// Truncation ψ of the model's codes toward its mean mapping output, as gdrf-edit's
+    /// --psi (1 = none, how GANs are usually scored; the authors render with 0.7). The random
+    /// end is never truncated, so positions stay on one scale; truncation trades variety
+    /// (coverage) for typical samples, and eval.json records ψ.
+    #[arg(long, default_value_t = 1.0)]
+    psi: f64,
     /// efficientnet (offline default) or inception (FID's network; needs --weights).
     #[arg(long, default_value = "efficientnet")]
     features: String,
@@ -200,6 +206,9 @@ fn run(a: RunArgs) -> Result<()> {
     let (Some(generator), Some(dataset), Some(probe_path)) = (&a.generator, &a.dataset, &a.probe) else {
         bail!("`gdrf-train eval` needs --generator G.safetensors, --dataset DIR and --probe PROBE.safetensors (or the train-probe subcommand); see --help");
     };
+    if !(a.psi.is_finite() && a.psi >= 0.0) {
+        bail!("--psi {}: expected a finite number ≥ 0 (1 = no truncation)", a.psi);
+    }
     let device = setup(&a.common)?;
     let features = match a.features.as_str() {
         "efficientnet" => FeatureKind::Efficientnet,
@@ -225,6 +234,7 @@ fn run(a: RunArgs) -> Result<()> {
         effnet_weights: a.common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path),
         threads: a.common.threads,
         real_resolution: a.real_resolution,
+        psi: a.psi,
     };
     if let Some(dup) = a.seeds.iter().enumerate().find_map(|(i, s)| a.seeds[..i].contains(s).then_some(s)) {
         bail!("--seeds lists seed {dup} twice; expected distinct seeds, e.g. 0,1,2");

@@ -20,6 +20,7 @@ use super::probe::{self, class_histograms, total_variation, Predictions, Probe, 
 use crate::camera::Poses;
 use crate::checkpoint::{load_generator, write_atomic};
 use crate::data::synth::{self, Metadata, Split};
+use crate::field::generator::Truncation;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{io, CameraConfig, Error, Generator, RenderConfig, Result};
@@ -88,6 +89,10 @@ pub struct EvalOptions {
     /// bilinearly back up to the evaluation's): what the resolution alone costs real data,
     /// a reference for a generator trained at it. `None`: not scored.
     pub real_resolution: Option<i64>,
+    /// Truncation ψ of the model's codes toward its mean mapping output (1 = none, the
+    /// usual way to score a GAN). The random end is never truncated, so positions stay on
+    /// one scale whatever ψ is.
+    pub psi: f64,
 }
 
 /// One score at the model and at both ends.
@@ -174,6 +179,8 @@ pub struct EvalResult {
     pub images: i64,
     pub resolution: i64,
     pub samples_per_ray: i64,
+    /// The model's truncation ψ ([`EvalOptions::psi`]; 1 = none).
+    pub psi: f64,
     pub frechet: Calibrated,
     pub kernel: Calibrated,
     /// Set when a Fréchet distance had to be regularised (few samples).
@@ -204,9 +211,10 @@ pub struct EvalResult {
 }
 
 /// Renders `z` at `poses` (batches of 16, no jitter, importance samples at the midpoints:
-/// no random numbers). `codes`: shape and appearance codes `(N, latent)` each.
+/// no random numbers) with `g`, its codes truncated by `trunc` when given. `codes`: shape
+/// and appearance codes `(N, latent)` each.
 fn render_codes(
-    g: &Generator,
+    (g, trunc): (&Generator, Option<&Truncation>),
     cam: &CameraConfig,
     rc: &RenderConfig,
     codes: (&Tensor, &Tensor),
@@ -221,7 +229,7 @@ fn render_codes(
     let mut i = 0;
     while i < n {
         let b = 16.min(n - i);
-        let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), None));
+        let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), trunc));
         let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
         let nz = Noise::midpoints(b, res * res, rc.num_steps as i64, zs.device());
         out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &nz))?.rgb.to_device(Device::Cpu));
@@ -415,6 +423,12 @@ impl Evaluator {
                 opts.num, opts.swap, opts.steps
             )));
         }
+        if !(opts.psi.is_finite() && opts.psi >= 0.0) {
+            return Err(Error::Invalid(format!(
+                "eval's truncation ψ is {}, expected a finite number ≥ 0 (1 = none)",
+                opts.psi
+            )));
+        }
         let meta = Metadata::load(dataset)?;
         let res = opts.resolution.unwrap_or(meta.options.resolution as i64);
         if !(8..=512).contains(&res) {
@@ -593,11 +607,13 @@ impl Evaluator {
     }
 
     /// Renders `num` images (codes and poses from the evaluation seed: the same for every
-    /// generator) and a swap matrix with `g`, and scores them.
+    /// generator) and a swap matrix with `g`, its codes truncated by `trunc` when given,
+    /// and scores them.
     pub fn score(
         &self,
         g: &Generator,
         cam: &CameraConfig,
+        trunc: Option<&Truncation>,
         what: &str,
         progress: &mut dyn FnMut(&str, i64, i64),
     ) -> Result<Scores> {
@@ -621,8 +637,8 @@ impl Evaluator {
             done += b;
             progress(&label, done, total);
         };
-        let imgs = render_codes(g, cam, &rc, (&z, &z), &poses, res, &mut tick)?;
-        let swap = render_codes(g, cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
+        let imgs = render_codes((g, trunc), cam, &rc, (&z, &z), &poses, res, &mut tick)?;
+        let swap = render_codes((g, trunc), cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
         Ok(self.score_images(&imgs, &poses.stacked().to_device(Device::Cpu), &swap, k, what, progress)?.0)
     }
 }
@@ -704,8 +720,9 @@ fn score_one(
     let rvs = nn::VarStore::new(device);
     let random =
         crate::rng::with_global_seed(opts.seed as i64 + 1, || Generator::new(&rvs.root(), &loaded.generator.cfg))?;
-    let model = ev.score(&loaded.generator, &cam, &format!("model{what}"), progress)?;
-    let rand = ev.score(&random, &cam, &format!("random generator{what}"), progress)?;
+    let trunc = loaded.generator.truncation_at(opts.psi);
+    let model = ev.score(&loaded.generator, &cam, trunc.as_ref(), &format!("model{what}"), progress)?;
+    let rand = ev.score(&random, &cam, None, &format!("random generator{what}"), progress)?;
     let real = &ev.real;
     let mut warnings: Vec<String> = Vec::new();
     if matches!(opts.features, FeatureKind::Efficientnet) && trained_against_projected(&loaded.header) {
@@ -743,6 +760,7 @@ fn score_one(
         images: opts.num,
         resolution: ev.resolution,
         samples_per_ray: 2 * opts.steps,
+        psi: opts.psi,
         frechet: c(|s| s.frechet),
         kernel: c(|s| s.kernel),
         warnings,
@@ -768,11 +786,24 @@ fn score_one(
     })
 }
 
+/// `", model truncated to ψ = 0.7"` where the model's codes were truncated, else nothing.
+pub(crate) fn truncation_note(psi: f64) -> String {
+    if psi == 1.0 {
+        String::new()
+    } else {
+        format!(", model truncated to ψ = {psi}")
+    }
+}
+
 /// The scores as text, one line per score.
 pub fn summary(r: &EvalResult) -> String {
     let mut s = format!(
-        "{} images at {}² ({} samples/ray), features: {}\n",
-        r.images, r.resolution, r.samples_per_ray, r.features
+        "{} images at {}² ({} samples/ray{}), features: {}\n",
+        r.images,
+        r.resolution,
+        r.samples_per_ray,
+        truncation_note(r.psi),
+        r.features
     );
     s += &format!("{:<26} {:>10} {:>10} {:>10} {:>9}\n", "score", "model", "real", "random", "position");
     for (name, c) in score_rows(r) {

@@ -4,7 +4,7 @@
 //! each score's per-seed values side by side, with their means, the position of the means
 //! and the worst position, so that "nearer the real end" can be judged over draws rather
 //! than on one.
-use super::report::{score_rows, write, Calibrated, EvalResult};
+use super::report::{score_rows, truncation_note, write, Calibrated, EvalResult};
 use crate::checkpoint::write_atomic;
 use crate::{Error, Result};
 use serde::Serialize;
@@ -42,6 +42,8 @@ pub struct SeedSummary {
     pub images: i64,
     pub resolution: i64,
     pub samples_per_ray: i64,
+    /// The model's truncation ψ (1 = none).
+    pub psi: f64,
     pub seeds: Vec<u64>,
     pub scores: Vec<SeedSpread>,
     /// Wall time of the whole evaluation.
@@ -99,6 +101,7 @@ pub fn summarise(results: &[EvalResult]) -> Result<SeedSummary> {
         images: first.images,
         resolution: first.resolution,
         samples_per_ray: first.samples_per_ray,
+        psi: first.psi,
         seeds: results.iter().map(|r| r.seed).collect(),
         scores,
         seconds: results.iter().map(|r| r.seconds).sum(),
@@ -110,12 +113,13 @@ pub fn summarise(results: &[EvalResult]) -> Result<SeedSummary> {
 pub fn summary(s: &SeedSummary) -> String {
     let seeds: Vec<String> = s.seeds.iter().map(u64::to_string).collect();
     let mut t = format!(
-        "{} seeds ({}), {} images at {}² ({} samples/ray); position: 0 random end, 1 real end\n",
+        "{} seeds ({}), {} images at {}² ({} samples/ray{}); position: 0 random end, 1 real end\n",
         s.seeds.len(),
         seeds.join(", "),
         s.images,
         s.resolution,
-        s.samples_per_ray
+        s.samples_per_ray,
+        truncation_note(s.psi)
     );
     let per_seed: String = s.seeds.iter().map(|k| format!(" {:>7}", format!("seed {k}"))).collect();
     t += &format!(

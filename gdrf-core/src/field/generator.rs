@@ -24,6 +24,9 @@ impl Latents {
     }
 }
 
+/// Codes averaged for the mean mapping output of [`Generator::truncation_at`].
+pub const TRUNCATION_MEAN_CODES: i64 = 10_000;
+
 /// Truncation toward the mean raw mapping output: raw ← mean + ψ·(raw − mean).
 #[derive(Debug)]
 pub struct Truncation {
@@ -101,6 +104,13 @@ impl Generator {
             shape_mean: self.shape_mapping.mean_output(n, seed, kind, device),
             appearance_mean: self.appearance_mapping.mean_output(n, seed.wrapping_add(1), kind, device),
         }
+    }
+
+    /// The truncation every tool renders and scores with at ψ (gdrf-edit's, gdrf-train
+    /// eval's `--psi`): the mean over [`TRUNCATION_MEAN_CODES`] codes of seed 0, so one ψ
+    /// means one thing everywhere; `None` at ψ = 1 (no truncation, nothing to compute).
+    pub fn truncation_at(&self, psi: f64) -> Option<Truncation> {
+        (psi != 1.0).then(|| self.truncation(psi, TRUNCATION_MEAN_CODES, 0))
     }
 
     /// w_s: `(B, mapping_hidden)` for shape codes `z_s: (B, latent)`.

@@ -924,12 +924,13 @@ impl Trainer {
                 effnet_weights: crate::eval::effnet::EfficientNetLite0::default_path(),
                 threads: self.cfg.threads,
                 real_resolution: None,
+                psi: 1.0,
             };
             self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
         }
         let ev = self.evaluator.as_ref().expect("built above");
         let start = Instant::now();
-        let s = ev.score(&self.ema_generator, &self.cfg.camera, "EMA generator", &mut |_, _, _| {})?;
+        let s = ev.score(&self.ema_generator, &self.cfg.camera, None, "EMA generator", &mut |_, _, _| {})?;
         let mut line = serde_json::json!({
             "event": "eval",
             "step": self.progress.step,
