@@ -5,7 +5,8 @@
 #      checkpoints, metrics, preview grids and loss curves in out/demo-run/; continue it
 #      with `target/debug/gdrf-train --resume out/demo-run`),
 #   3. samples on a turntable and a shape/appearance swap matrix from the model shipped
-#      in models/chairs-tiny/ (trained with the same config for hours),
+#      in models/chairs-tiny-blend/ (two runs of the same config, hours on a 2-core CPU,
+#      blended in weight space; trained at 32², shown at 64²),
 #   4. editing with it: a swap matrix with kept shape sides, an orbit GIF of one shape with
 #      another's appearance, an appearance interpolation and a mesh with correspondence
 #      colours,
@@ -27,7 +28,7 @@ invert=target/debug/gdrf-invert
 "$train" --config configs/chairs-tiny.toml --run-dir out/demo-run --force --minutes "${DEMO_MINUTES:-3}"
 "$train" plot out/demo-run
 
-model=models/chairs-tiny/generator.safetensors
+model=models/chairs-tiny-blend/generator.safetensors
 # Rows: seeds 0–5; columns: 4 views around the object.
 "$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --steps 12 \
   --no-jitter --out out/samples.png
@@ -45,13 +46,14 @@ model=models/chairs-tiny/generator.safetensors
 "$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
 # A held-out chair of the dataset (never trained on) at its known pose, inverted into
 # out/invert/features.safetensors, then its appearance on seed 0's shape.
-"$invert" data/chairs-64/images/000020.png --pose 60.9,11.5 --steps 100 --resolution 32 --samples 12 \
+"$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 --resolution 32 --samples 12 \
   --orbit 12 --out out/invert --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
   --orbit 12 --resolution 64 --steps 12 --out out/invert-swap --force
-# 200 images keep this to a few minutes; the figures in the README use --num 1000.
+# Scored where it learned (32², 12 + 12 samples). 200 images keep this to a couple of
+# minutes; the figures in the README use --num 500.
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
-  --num 200 --out out/eval
+  --num 200 --resolution 32 --steps 12 --out out/eval
 echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png); from the shipped model:"
 echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply, out/invert/,"
 echo "      out/invert-swap/ and out/eval/"

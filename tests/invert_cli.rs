@@ -4,7 +4,7 @@
 //! inversion.
 mod common;
 
-use common::{repo_root, TempDir};
+use common::TempDir;
 use gdrf_core::checkpoint::{load_generator, save_generator};
 use gdrf_core::data::synth::{encode_png, render_object, sample_object, Category, SynthOptions};
 use gdrf_core::edit::{generator_id, Features};
@@ -97,8 +97,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
         serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
     assert_eq!(report["steps_run"], 3);
     assert!(report["perceptual"].as_str().unwrap().contains("not LPIPS"));
-    let m = load_generator(&repo_root().join("models/chairs-tiny/generator.safetensors"), Device::Cpu, Kind::Float)
-        .unwrap();
+    let m = load_generator(&gdrf_core::bench::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
     let f =
         Features::load(&out.join("features.safetensors"), &m.generator, &generator_id(&m.vs, &m.generator)).unwrap();
     let p = f.pose.unwrap();
@@ -164,8 +163,7 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
     ok(&as_args(&small("6", &["--resume"])));
 
     // Another generator (one weight changed) refuses this initialiser, naming both.
-    let mut m = load_generator(&repo_root().join("models/chairs-tiny/generator.safetensors"), Device::Cpu, Kind::Float)
-        .unwrap();
+    let mut m = load_generator(&gdrf_core::bench::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
     tch::no_grad(|| {
         let mut w = m.vs.variables()["deform.head.bias"].shallow_clone();
         let _ = w.g_add_scalar_(0.01);
@@ -255,7 +253,7 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
         serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json")).unwrap()).unwrap();
     // The shipped defaults, found from the test's working folder (not the repository's) and
     // written relative to the repository: no machine's folder in the committed figures.
-    assert_eq!(json["generator"], "models/chairs-tiny/generator.safetensors");
+    assert_eq!(json["generator"], "models/chairs-tiny-blend/generator.safetensors");
     assert_eq!(json["probe"], "models/chairs-probe/probe.safetensors");
     let points = json["points"].as_array().unwrap();
     let mut methods: Vec<&str> = points.iter().map(|p| p["method"].as_str().unwrap()).collect();
