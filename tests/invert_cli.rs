@@ -117,6 +117,32 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     assert!((start[0].as_f64().unwrap() - 1.2217f64.to_degrees()).abs() < 1e-9, "{start}");
     assert_eq!(start[1].as_f64(), Some(0.0), "{start}");
 
+    // Without --resolution and --samples it inverts where the generator learned (the shipped
+    // header: 32², 24 samples per ray, so 12 + 12); a generator without that record gets 64²
+    // and 24 + 24, and a flag given wins over the header.
+    let bare = tmp.path("bare.safetensors");
+    let mut header = m.header.clone();
+    header.info.clear();
+    save_generator(&bare, &m.vs, &header).unwrap();
+    let config_of = |extra: &[&str], name: &str| -> (i64, i64, String) {
+        let dir = tmp.path(name);
+        let mut args = vec![photo.as_str(), "--pose", "62.5,-8.2", "--steps", "1", "--orbit", "0", "--quiet"];
+        args.extend(["--out", dir.to_str().unwrap()]);
+        args.extend(extra);
+        let said = ok(&args);
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("invert.json")).unwrap()).unwrap();
+        (r["config"]["resolution"].as_i64().unwrap(), r["config"]["num_steps"].as_i64().unwrap(), said)
+    };
+    let (res, n, said) = config_of(&[], "learned");
+    assert_eq!((res, n), (32, 12));
+    assert!(said.contains("at 32² (where the generator learned) with 12 + 12 samples"), "{said}");
+    let (res, n, said) = config_of(&["--generator", bare.to_str().unwrap()], "bare");
+    assert_eq!((res, n), (64, 24));
+    assert!(!said.contains("where the generator learned"), "{said}");
+    let (res, n, _) = config_of(&["--resolution", "16", "--samples", "4"], "given");
+    assert_eq!((res, n), (16, 4));
+
     // Bad inputs: each named, and the output folder is never created for them.
     let fresh = tmp.path("never");
     let n = fresh.to_str().unwrap();

@@ -40,7 +40,25 @@ pub struct Header {
     pub training: Option<serde_json::Value>,
 }
 
+/// The generator header's `info` key holding the resolution of its last training step.
+pub const RESOLUTION_INFO: &str = "resolution";
+/// The generator header's `info` key holding the samples per ray (coarse + fine) of its last
+/// training step.
+pub const SAMPLES_PER_RAY_INFO: &str = "samples_per_ray";
+
 impl Header {
+    /// The resolution of the generator's last training step, when its run recorded it.
+    pub fn trained_resolution(&self) -> Option<i64> {
+        self.info.get(RESOLUTION_INFO)?.parse().ok()
+    }
+
+    /// The coarse samples per ray of its last training step (half of coarse + fine), when
+    /// recorded: what `--samples`/`--steps` mean in the tools.
+    pub fn trained_coarse_samples(&self) -> Option<i64> {
+        let n: i64 = self.info.get(SAMPLES_PER_RAY_INFO)?.parse().ok()?;
+        Some((n / 2).max(2))
+    }
+
     pub fn generator(generator: GeneratorConfig, camera: Option<CameraConfig>) -> Self {
         Self {
             format_version: FORMAT_VERSION,
@@ -346,7 +364,7 @@ pub fn save_interpolated(a: &Path, b: &Path, t: f64, out: &Path) -> Result<Heade
         }
     }
     // What both sources last trained at, where they agree, for the evaluation to read.
-    for key in [crate::eval::report::RESOLUTION_INFO, "samples_per_ray"] {
+    for key in [RESOLUTION_INFO, SAMPLES_PER_RAY_INFO] {
         if let (Some(x), Some(y)) = (ga.header.info.get(key), gb.header.info.get(key)) {
             if x == y {
                 header.info.insert(key.into(), x.clone());

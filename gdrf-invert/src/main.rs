@@ -130,12 +130,15 @@ struct InvertArgs {
     /// Adam's learning rate.
     #[arg(long, default_value_t = InvertConfig::default().lr)]
     lr: f64,
-    /// Side of the renders compared with the photo.
-    #[arg(long, default_value_t = InvertConfig::default().resolution)]
-    resolution: i64,
+    /// Side of the renders compared with the photo. Default: the resolution the generator
+    /// was last trained at, as its header records (32 for the shipped models), else 64.
+    #[arg(long)]
+    resolution: Option<i64>,
     /// Coarse samples per ray during the optimisation (the importance pass adds as many).
-    #[arg(long, default_value_t = InvertConfig::default().num_steps)]
-    samples: usize,
+    /// Default: those of the generator's last training step, as its header records (12 for
+    /// the shipped models), else 24.
+    #[arg(long)]
+    samples: Option<usize>,
     /// Perceptual term: effnet (EfficientNet-Lite0 distance, offline default), lpips-vgg or
     /// lpips-alex (real LPIPS; needs --lpips-backbone), or none.
     #[arg(long, default_value = "effnet", value_parser = ["effnet", "lpips-vgg", "lpips-alex", "none"])]
@@ -228,11 +231,24 @@ fn run(a: InvertArgs) -> Result<()> {
     }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    // Where the generator learned, unless told otherwise: a model trained at 32² draws its
+    // best there, and a larger render only costs time.
+    let defaults = InvertConfig::default();
+    let resolution = a.resolution.or(m.header.trained_resolution()).unwrap_or(defaults.resolution);
+    let samples = a.samples.or(m.header.trained_coarse_samples().map(|n| n as usize)).unwrap_or(defaults.num_steps);
+    let learned = if a.resolution.is_none() && m.header.trained_resolution().is_some() {
+        " (where the generator learned)"
+    } else {
+        ""
+    };
     let cfg = InvertConfig {
         steps: a.steps,
         lr: a.lr,
-        resolution: a.resolution,
-        num_steps: a.samples,
+        resolution,
+        num_steps: samples,
         mse_weight: a.mse_weight,
         perceptual_weight: if a.perceptual == "none" { 0.0 } else { a.perceptual_weight },
         prior_shape: a.prior_shape,
@@ -250,14 +266,11 @@ fn run(a: InvertArgs) -> Result<()> {
         ..Default::default()
     };
     cfg.validate()?;
-    let view_res = a.render_resolution.unwrap_or(a.resolution);
+    let view_res = a.render_resolution.unwrap_or(resolution);
     if !(4..=1024).contains(&view_res) {
         bail!("--render-resolution {view_res}: expected 4 to 1024");
     }
     let pose = a.pose.as_deref().map(|p| parse_pose_degrees(p, "--pose")).transpose()?;
-    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
-    let m = load_generator(&gen_path, dev, Kind::Float)
-        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let cam = match &a.camera {
         Some(name) => gdrf_core::CameraConfig::preset(name)?,
         None => m.header.camera.clone().unwrap_or_default(),
@@ -265,7 +278,7 @@ fn run(a: InvertArgs) -> Result<()> {
     let g = &m.generator;
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
-    let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, a.resolution, dev)?;
+    let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, resolution, dev)?;
     let init = a
         .init
         .as_deref()
@@ -308,11 +321,11 @@ fn run(a: InvertArgs) -> Result<()> {
     };
     let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
     eprintln!(
-        "inverting {} at {}² with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        "inverting {} at {}²{learned} with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
         photo_path.display(),
-        a.resolution,
-        a.samples,
-        a.samples,
+        resolution,
+        samples,
+        samples,
         a.steps
     );
     let start = match predicted {
@@ -348,7 +361,7 @@ fn run(a: InvertArgs) -> Result<()> {
 
     // Outputs.
     inv.features.save(&a.out.join("features.safetensors"), &id)?;
-    let view_samples = a.samples.max(12);
+    let view_samples = samples.max(12);
     let view = |f: &gdrf_core::edit::Features, poses: &[(f64, f64)]| -> Result<Tensor> {
         Ok(render_views(g, &cam, f, poses, view_res, view_samples)?)
     };

@@ -31,15 +31,11 @@ use tch::{nn, Device, Kind, Tensor};
 /// The generator header's `info` key naming the discriminator it was trained against.
 pub const DISCRIMINATOR_INFO: &str = "discriminator";
 
-/// The generator header's `info` key holding the resolution of its last training step.
-pub const RESOLUTION_INFO: &str = "resolution";
-
 /// Said when a generator is scored at another resolution than the one it was trained at.
 pub fn resolution_warning(header: &crate::checkpoint::Header, resolution: i64) -> Option<String> {
-    let trained: i64 = header.info.get(RESOLUTION_INFO)?.parse().ok()?;
+    let trained = header.trained_resolution()?;
     (trained != resolution).then(|| {
-        let samples = header.info.get("samples_per_ray").and_then(|s| s.parse::<i64>().ok());
-        let steps = samples.map(|n| format!(" --steps {}", (n / 2).max(2))).unwrap_or_default();
+        let steps = header.trained_coarse_samples().map(|n| format!(" --steps {n}")).unwrap_or_default();
         format!(
             "this generator was trained at {trained}² and is rendered here at {resolution}²; \
              `--resolution {trained}{steps}` scores it where it learned, against the real images at {trained}²"
@@ -997,15 +993,17 @@ mod tests {
 
     #[test]
     fn scoring_at_another_resolution_than_training_is_said() {
-        use crate::checkpoint::Header;
+        use crate::checkpoint::{Header, RESOLUTION_INFO, SAMPLES_PER_RAY_INFO};
         let mut h = Header::generator(Default::default(), None);
         assert_eq!(resolution_warning(&h, 64), None, "no provenance: no warning");
+        assert_eq!((h.trained_resolution(), h.trained_coarse_samples()), (None, None));
         h.info.insert(RESOLUTION_INFO.into(), "32".into());
-        h.info.insert("samples_per_ray".into(), "24".into());
+        h.info.insert(SAMPLES_PER_RAY_INFO.into(), "24".into());
+        assert_eq!((h.trained_resolution(), h.trained_coarse_samples()), (Some(32), Some(12)));
         assert_eq!(resolution_warning(&h, 32), None);
         let w = resolution_warning(&h, 64).unwrap();
         assert!(w.contains("trained at 32²") && w.contains("`--resolution 32 --steps 12`"), "{w}");
-        h.info.remove("samples_per_ray");
+        h.info.remove(SAMPLES_PER_RAY_INFO);
         assert!(resolution_warning(&h, 64).unwrap().contains("`--resolution 32`"));
     }
 

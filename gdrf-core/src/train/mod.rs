@@ -770,8 +770,8 @@ impl Trainer {
         // What the last step rendered at: the evaluation says when it scores the generator
         // at another resolution.
         let stage = self.cfg.stage((p.step - 1).max(0));
-        h.info.insert(crate::eval::report::RESOLUTION_INFO.into(), stage.resolution.to_string());
-        h.info.insert("samples_per_ray".into(), (2 * stage.num_steps).to_string());
+        h.info.insert(crate::checkpoint::RESOLUTION_INFO.into(), stage.resolution.to_string());
+        h.info.insert(crate::checkpoint::SAMPLES_PER_RAY_INFO.into(), (2 * stage.num_steps).to_string());
         // Which discriminator shaped it: the evaluation warns when its distances use the
         // features a projected discriminator was built on.
         h.info.insert(crate::eval::report::DISCRIMINATOR_INFO.into(), self.cfg.discriminator.kind.name().into());
