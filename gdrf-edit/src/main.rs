@@ -185,7 +185,10 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
         camera: header.camera.clone().unwrap_or_default(),
         device: dev,
         id,
-        photo: Default::default(),
+        photo: swap::PhotoSettings {
+            cfg: gdrf_core::invert::InvertConfig::where_learned(&header),
+            ..Default::default()
+        },
     })
 }
 

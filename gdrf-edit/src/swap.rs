@@ -31,8 +31,8 @@ pub struct ModelArgs {
     /// camera stored with the checkpoint.
     #[arg(long, value_parser = ["chair", "car", "carla"])]
     camera: Option<String>,
-    /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults;
-    /// gdrf-invert writes a reusable feature file): the photo's pose as PITCH,YAW in degrees
+    /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
+    /// where the generator learned; gdrf-invert writes a reusable feature file): the photo's pose as PITCH,YAW in degrees
     /// (default: the initialiser's estimate, else the camera's mean pose).
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
     photo_pose: Option<String>,
@@ -222,7 +222,7 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     model.photo = PhotoSettings {
         pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
         init: m.photo_init.clone(),
-        cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..Default::default() },
+        cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..model.photo.cfg.clone() },
     };
     model.photo.cfg.validate()?;
     Ok((model, threads))
@@ -240,7 +240,14 @@ pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     match source {
         Source::Image(p) => {
             let ph = &model.photo;
-            eprintln!("{flag}: inverting {} ({} steps)", p.display(), ph.cfg.steps);
+            eprintln!(
+                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray)",
+                p.display(),
+                ph.cfg.steps,
+                ph.cfg.resolution,
+                ph.cfg.num_steps,
+                ph.cfg.num_steps
+            );
             gdrf_core::invert::features_of_photo(
                 &model.generator,
                 &model.camera,
@@ -521,6 +528,28 @@ mod tests {
         assert_eq!(steps(&["x"]), 36);
         assert_eq!(steps(&["x", "--steps", "8"]), 8);
         assert_eq!(steps(&["x", "--samples", "8"]), 8);
+    }
+
+    #[test]
+    fn photo_sources_invert_where_the_generator_learned() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            model: ModelArgs,
+        }
+        let photo_cfg = |args: &[&str]| {
+            let cli = <Cli as clap::Parser>::try_parse_from(args).unwrap();
+            let (model, _) = open(&cli.model).unwrap();
+            let c = &model.photo.cfg;
+            (c.resolution, c.num_steps, c.steps)
+        };
+        // The shipped generator's header records 32² and 24 samples per ray.
+        let shipped = gdrf_core::bench::shipped_generator();
+        let shipped = shipped.to_str().unwrap();
+        assert_eq!(photo_cfg(&["x", "--checkpoint", shipped, "--photo-steps", "7", "--device", "cpu"]), (32, 12, 7));
+        // A random generator has no training record: gdrf-invert's plain defaults.
+        let d = gdrf_core::invert::InvertConfig::default();
+        assert_eq!(photo_cfg(&["x", "--device", "cpu"]), (d.resolution, d.num_steps, d.steps));
     }
 
     fn small() -> (nn::VarStore, Generator) {

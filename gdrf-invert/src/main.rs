@@ -234,12 +234,9 @@ fn run(a: InvertArgs) -> Result<()> {
     let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
-    // Where the generator learned, unless told otherwise: a model trained at 32² draws its
-    // best there, and a larger render only costs time.
-    let defaults = InvertConfig::default();
-    let resolution = a.resolution.or(m.header.trained_resolution()).unwrap_or(defaults.resolution);
-    let samples = a.samples.or(m.header.trained_coarse_samples().map(|n| n as usize)).unwrap_or(defaults.num_steps);
-    let learned = if a.resolution.is_none() && m.header.trained_resolution().is_some() {
+    let learned = InvertConfig::where_learned(&m.header);
+    let (resolution, samples) = (a.resolution.unwrap_or(learned.resolution), a.samples.unwrap_or(learned.num_steps));
+    let said = if a.resolution.is_none() && m.header.trained_resolution().is_some() {
         " (where the generator learned)"
     } else {
         ""
@@ -321,7 +318,7 @@ fn run(a: InvertArgs) -> Result<()> {
     };
     let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
     eprintln!(
-        "inverting {} at {}²{learned} with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        "inverting {} at {}²{said} with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
         photo_path.display(),
         resolution,
         samples,

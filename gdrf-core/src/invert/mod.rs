@@ -111,6 +111,18 @@ impl Default for InvertConfig {
 }
 
 impl InvertConfig {
+    /// The defaults, rendered where the generator learned: the resolution and samples per
+    /// ray of its last training step when its header records them (a model trained at 32²
+    /// draws its best there, and a larger render only costs time), else 64² and 24 + 24.
+    pub fn where_learned(header: &crate::checkpoint::Header) -> Self {
+        let d = Self::default();
+        Self {
+            resolution: header.trained_resolution().unwrap_or(d.resolution),
+            num_steps: header.trained_coarse_samples().map_or(d.num_steps, |n| n as usize),
+            ..d
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad =
             |key: &str, v: String, want: &str| Err(Error::Config(format!("invert.{key} is {v}, expected {want}")));
