@@ -32,8 +32,9 @@ pub struct ModelArgs {
     #[arg(long, value_parser = ["chair", "car", "carla"])]
     camera: Option<String>,
     /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
-    /// where the generator learned; gdrf-invert writes a reusable feature file): the photo's pose as PITCH,YAW in degrees
-    /// (default: the initialiser's estimate, else the camera's mean pose).
+    /// where the generator learned; gdrf-invert writes a reusable feature file): the
+    /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, else the
+    /// camera's mean pose).
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
     photo_pose: Option<String>,
     /// The initialiser for photo sources (gdrf-invert train-init).
