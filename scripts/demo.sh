@@ -46,7 +46,7 @@ model=models/chairs-tiny-blend/generator.safetensors
 "$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
 # A held-out chair of the dataset (never trained on) at its known pose, inverted into
 # out/invert/features.safetensors, then its appearance on seed 0's shape.
-"$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 --resolution 32 --samples 12 \
+"$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 \
   --orbit 12 --out out/invert --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
   --orbit 12 --resolution 64 --steps 12 --out out/invert-swap --force

@@ -867,7 +867,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let width = (grid.width() as i64).max(k * cell + 20).max(620) + 20;
     let hist_h = 150;
     let low_lines = if r.real_at_resolution.is_some() { 2 } else { 0 };
-    let height = 20 + 14 * (11 + low_lines) + 20 + grid.height() as i64 + 30 + hist_h + 30 + k * cell + 20;
+    let height = 20 + 14 * (11 + low_lines) + 20 + grid.height() as i64 + 30 + hist_h + 44 + k * cell + 20;
     let mut img = image::RgbImage::from_pixel(width as u32, height as u32, Rgb([255, 255, 255]));
     let black = Rgb([0, 0, 0]);
     let mut y = 10;
@@ -938,7 +938,17 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         x += 16;
     }
     y += hist_h + 12;
-    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance. bars: structure, colour verdicts: green yes, red no, grey not counted", black, 1);
+    // Two lines: one would run past the right edge of the narrowest report.
+    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance", black, 1);
+    y += 14;
+    draw_text(
+        &mut img,
+        10,
+        y,
+        "bars: structure (left) and colour (right). green yes, red no, grey not counted",
+        black,
+        1,
+    );
     y += 14;
     let sw = io::to_rgb8(&io::grid(&r.swap_images, k), false)?;
     for i in 0..k {
