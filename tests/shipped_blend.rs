@@ -76,4 +76,17 @@ fn interpolate_refuses_bad_input_by_name() {
         assert!(err.contains(expected), "{expected} not in {err}");
         assert!(!out.exists());
     }
+    for (group, expected) in [
+        ("trunk", "expected PREFIX=T"),
+        ("trunk=0.3", "trunk names no parameter of the generator"),
+        ("template.trunk=-0.1", "the weight of template.trunk is -0.1"),
+        ("template.trunk=x", "expected a number after '='"),
+    ] {
+        let run =
+            interpolate(&["--from", ms, "--to", ms, "--t", "0.4", "--t-for", group, "--out", out.to_str().unwrap()]);
+        assert_eq!(run.status.code(), Some(2), "--t-for {group}");
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(err.contains(expected), "{expected} not in {err}");
+        assert!(!out.exists());
+    }
 }

@@ -310,10 +310,20 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
 /// does better (weight-space ensembling, "WiSE-FT"; Wortsman et al., CVPR 2022): the
 /// shipped chairs model is such a blend (models/chairs-tiny-blend/README.md). Both must
 /// share the generator config and, where both record one, the camera; `t` lies in [0, 1].
-/// The header records both sources, their provenance and `t`.
-pub fn save_interpolated(a: &Path, b: &Path, t: f64, out: &Path) -> Result<Header> {
+///
+/// `groups` gives the parameters under a name prefix their own weight (`template.trunk`
+/// covers `template.trunk.0.weight` …; the longest matching prefix wins): the sub-networks
+/// of two such ends need not sit best at one point of the line (layer-wise merging). A
+/// prefix that names no parameter is an error listing the ones there are. The header
+/// records both sources, their provenance, `t` and the groups.
+pub fn save_interpolated(a: &Path, b: &Path, t: f64, groups: &[(String, f64)], out: &Path) -> Result<Header> {
     if !(0.0..=1.0).contains(&t) {
         return Err(Error::Invalid(format!("t is {t}, expected a weight in [0, 1] (0 gives the first generator)")));
+    }
+    for (prefix, tg) in groups {
+        if !(0.0..=1.0).contains(tg) {
+            return Err(Error::Invalid(format!("the weight of {prefix} is {tg}, expected a weight in [0, 1]")));
+        }
     }
     let ga = load_generator(a, Device::Cpu, Kind::Float)?;
     let gb = load_generator(b, Device::Cpu, Kind::Float)?;
@@ -345,17 +355,48 @@ pub fn save_interpolated(a: &Path, b: &Path, t: f64, out: &Path) -> Result<Heade
         (ca, cb) => ca.clone().or_else(|| cb.clone()),
     };
     let vb = gb.vs.variables();
+    let va = ga.vs.variables();
+    let under = |name: &str, prefix: &str| {
+        name.strip_prefix(prefix).is_some_and(|rest| rest.is_empty() || rest.starts_with('.'))
+    };
+    for (prefix, _) in groups {
+        if !va.keys().any(|name| under(name, prefix)) {
+            // Parameter names less their last part, and less a layer index before it.
+            let module = |n: &str| {
+                let base = n.rsplit_once('.').map_or(n, |(m, _)| m);
+                match base.rsplit_once('.') {
+                    Some((m, i)) if i.parse::<usize>().is_ok() => m.to_string(),
+                    _ => base.to_string(),
+                }
+            };
+            let mut modules: Vec<String> = va.keys().map(|n| module(n)).collect();
+            modules.sort();
+            modules.dedup();
+            return Err(Error::Invalid(format!(
+                "{prefix} names no parameter of the generator; expected a prefix of a parameter name such as {}",
+                modules.join(", ")
+            )));
+        }
+    }
+    let weight = |name: &str| {
+        groups.iter().filter(|(p, _)| under(name, p)).max_by_key(|(p, _)| p.len()).map_or(t, |(_, tg)| *tg)
+    };
     let mut tensors: Vec<(String, Tensor)> = tch::no_grad(|| {
-        ga.vs.variables().into_iter().map(|(name, ta)| {
+        va.into_iter().map(|(name, ta)| {
             // Same config, so the same names and shapes.
-            let mixed = &ta * (1.0 - t) + &vb[&name] * t;
+            let w = weight(&name);
+            let mixed = &ta * (1.0 - w) + &vb[&name] * w;
             (name, mixed)
         })
     })
     .collect();
     tensors.sort_by(|x, y| x.0.cmp(&y.0));
     let mut header = Header::generator(ga.header.generator.clone(), camera);
-    header.info.insert("interpolated".into(), format!("(1 - t)·from + t·to, t = {t}"));
+    let mut rule = format!("(1 - t)·from + t·to, t = {t}");
+    for (prefix, tg) in groups {
+        rule.push_str(&format!("; t = {tg} under {prefix}"));
+    }
+    header.info.insert("interpolated".into(), rule);
     header.info.insert("from".into(), a.display().to_string());
     header.info.insert("to".into(), b.display().to_string());
     for (prefix, h) in [("from", &ga.header), ("to", &gb.header)] {
@@ -403,7 +444,7 @@ mod tests {
         let a = write("a.safetensors", &cfg, Some(CameraConfig::chair()), 1.0);
         let b = write("b.safetensors", &cfg, None, 3.0);
         let out = dir.join("mix.safetensors");
-        let header = save_interpolated(&a, &b, 0.25, &out).unwrap();
+        let header = save_interpolated(&a, &b, 0.25, &[], &out).unwrap();
         assert_eq!(header.camera, Some(CameraConfig::chair()));
         assert_eq!(header.info["from.step"], "1");
         assert_eq!(header.info["to.step"], "3");
@@ -420,22 +461,52 @@ mod tests {
         }
         // The ends give the sources back exactly.
         for (t, source) in [(0.0, &a), (1.0, &b)] {
-            save_interpolated(&a, &b, t, &out).unwrap();
+            save_interpolated(&a, &b, t, &[], &out).unwrap();
             let got = load_generator(&out, Device::Cpu, Kind::Float).unwrap().vs.variables();
             let want = load_generator(source, Device::Cpu, Kind::Float).unwrap().vs.variables();
             for (name, v) in got {
                 assert!(v.equal(&want[&name]), "t = {t}: {name}");
             }
         }
-        let e = save_interpolated(&a, &b, 1.5, &out).unwrap_err().to_string();
+        // Groups: the longest matching prefix wins, at a name-part boundary, and the rest
+        // keep t. 1 and 3 mixed at 0.5 give 2, at 0.75 give 2.5, at 0.25 give 1.5.
+        let groups = [("template".to_string(), 0.5), ("template.trunk".to_string(), 0.75)];
+        let header = save_interpolated(&a, &b, 0.25, &groups, &out).unwrap();
+        assert_eq!(
+            header.info["interpolated"],
+            "(1 - t)·from + t·to, t = 0.25; t = 0.5 under template; t = 0.75 under template.trunk"
+        );
+        let vars = load_generator(&out, Device::Cpu, Kind::Float).unwrap().vs.variables();
+        let mut seen = [0; 3];
+        for (name, v) in vars {
+            let (want, k) = if name.starts_with("template.trunk.") {
+                (2.5, 0)
+            } else if name.starts_with("template.") {
+                (2.0, 1)
+            } else {
+                (1.5, 2)
+            };
+            seen[k] += 1;
+            assert!(v.eq(want).all().int64_value(&[]) == 1, "{name} should be {want}");
+        }
+        assert!(seen.iter().all(|&n| n > 0), "every group has parameters: {seen:?}");
+        // `template.tr` is not a name part: it names nothing, and the error lists what does.
+        let e = save_interpolated(&a, &b, 0.25, &[("template.tr".into(), 0.5)], &out).unwrap_err().to_string();
+        assert!(
+            e.contains("template.tr names no parameter") && e.contains("template.sigma_head, template.trunk"),
+            "{e}"
+        );
+        let e = save_interpolated(&a, &b, 0.25, &[("deform".into(), 2.0)], &out).unwrap_err().to_string();
+        assert!(e.contains("the weight of deform is 2") && e.contains("[0, 1]"), "{e}");
+        let e = save_interpolated(&a, &b, 1.5, &[], &out).unwrap_err().to_string();
         assert!(e.contains("t is 1.5") && e.contains("[0, 1]"), "{e}");
-        let e = save_interpolated(&a, &b, f64::NAN, &out).unwrap_err().to_string();
+        let e = save_interpolated(&a, &b, f64::NAN, &[], &out).unwrap_err().to_string();
         assert!(e.contains("t is NaN"), "{e}");
         let wide = write("wide.safetensors", &GeneratorConfig { hidden_dim: 8, ..cfg.clone() }, None, 2.0);
-        let e = save_interpolated(&a, &wide, 0.5, &out).unwrap_err().to_string();
+        let e = save_interpolated(&a, &wide, 0.5, &[], &out).unwrap_err().to_string();
         assert!(e.contains("different generator configs (hidden_dim 16 and 8)"), "{e}");
         let car = write("car.safetensors", &cfg, Some(CameraConfig::car()), 2.0);
-        let e = save_interpolated(&a, &car, 0.5, &out).unwrap_err().to_string();
+        let e = save_interpolated(&a, &car, 0.5, &[], &out).unwrap_err().to_string();
         assert!(e.contains("different cameras"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -62,6 +62,13 @@ struct InterpolateArgs {
     /// Weight of --to, in [0, 1].
     #[arg(long)]
     t: f64,
+    /// Another weight for the parameters under a name prefix, e.g.
+    /// `--t-for template.trunk=0.25` (repeatable; the longest matching prefix wins). The
+    /// generator's groups: shape_mapping, deform (the shape side), template.trunk and
+    /// template.sigma_head (the template's geometry), template.color, template.rgb_head
+    /// and appearance_mapping (its appearance).
+    #[arg(long = "t-for", value_name = "PREFIX=T", value_parser = parse_group_weight)]
+    t_for: Vec<(String, f64)>,
     /// Output generator (.safetensors), written atomically.
     #[arg(long)]
     out: PathBuf,
@@ -218,9 +225,25 @@ fn main() {
     }
 }
 
+fn parse_group_weight(s: &str) -> std::result::Result<(String, f64), String> {
+    let (prefix, t) =
+        s.split_once('=').ok_or_else(|| format!("expected PREFIX=T (e.g. template.trunk=0.25), got {s:?}"))?;
+    let t = t.parse::<f64>().map_err(|_| format!("expected a number after '=', got {t:?}"))?;
+    if prefix.is_empty() {
+        return Err("expected a parameter-name prefix before '='".into());
+    }
+    Ok((prefix.to_string(), t))
+}
+
 fn interpolate_cmd(a: InterpolateArgs) -> Result<()> {
-    gdrf_core::checkpoint::save_interpolated(&a.from, &a.to, a.t, &a.out)?;
-    println!("wrote {}: (1 - {t})·{} + {t}·{}", a.out.display(), a.from.display(), a.to.display(), t = a.t);
+    let header = gdrf_core::checkpoint::save_interpolated(&a.from, &a.to, a.t, &a.t_for, &a.out)?;
+    println!(
+        "wrote {}: from {}, to {}; {}",
+        a.out.display(),
+        a.from.display(),
+        a.to.display(),
+        header.info.get("interpolated").map_or("", String::as_str)
+    );
     Ok(())
 }
 
