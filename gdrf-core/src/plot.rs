@@ -107,12 +107,6 @@ pub(crate) fn fill(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8
 /// Draws `s` with its top-left corner at (x, y).
 pub(crate) fn draw_text(img: &mut RgbImage, x: i64, y: i64, s: &str, c: Rgb<u8>, scale: u32) {
     let sc = scale as i64;
-    // A clipped caption loses its end silently; the tests that draw figures catch it here.
-    debug_assert!(
-        x + s.chars().count() as i64 * 6 * sc <= img.width() as i64 + sc,
-        "text runs past the image's right edge ({} px wide): {s:?}",
-        img.width()
-    );
     for (i, ch) in s.chars().enumerate() {
         let gx = x + i as i64 * 6 * sc;
         for (r, bits) in glyph(ch).iter().enumerate() {

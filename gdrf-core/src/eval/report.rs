@@ -852,19 +852,27 @@ pub(crate) fn score_rows(r: &EvalResult) -> Vec<(&'static str, &Calibrated)> {
     ]
 }
 
+const CLASSES_CAPTION: &str = "classes: grey held-out truth, blue model, orange random generator";
+const SWAP_CAPTION: &str = "swap matrix: row = shape, column = appearance";
+// Apart from the line above: together they ran past the right edge of a 640-px report.
+const BARS_CAPTION: &str = "bars: structure (left) and colour (right). green yes, red no, grey not counted";
+
 /// The one-page report: scores, sample grid, class histograms (reference / model /
 /// random), and the swap matrix with the probe's verdicts (a green or red bar under each
 /// off-diagonal cell: left half structure follows the row, right half colour follows the
 /// column).
 pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
-    use crate::plot::{draw_text, fill};
+    use crate::plot::{draw_text, fill, text_width};
     use image::Rgb;
     let s = r.resolution;
     let cols = 8;
     let grid = io::to_rgb8(&io::grid(&r.samples, cols), false)?;
     let k = r.swap_side;
     let cell = s + 6;
-    let width = (grid.width() as i64).max(k * cell + 20).max(620) + 20;
+    // Wide enough for the grids and for every fixed caption, which would otherwise be cut.
+    let captions = [CLASSES_CAPTION, SWAP_CAPTION, BARS_CAPTION];
+    let text = captions.iter().map(|c| text_width(c, 1)).max().unwrap_or(0);
+    let width = (grid.width() as i64).max(k * cell + 20).max(text + 10).max(620) + 20;
     let hist_h = 150;
     let low_lines = if r.real_at_resolution.is_some() { 2 } else { 0 };
     let height = 20 + 14 * (11 + low_lines) + 20 + grid.height() as i64 + 30 + hist_h + 44 + k * cell + 20;
@@ -920,7 +928,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     y += 12;
     image::imageops::overlay(&mut img, &grid, 10, y);
     y += grid.height() as i64 + 16;
-    draw_text(&mut img, 10, y, "classes: grey held-out truth, blue model, orange random generator", black, 1);
+    draw_text(&mut img, 10, y, CLASSES_CAPTION, black, 1);
     y += 14;
     let colours = [Rgb([90, 90, 90]), Rgb([40, 110, 220]), Rgb([220, 120, 40])];
     let mut x = 10;
@@ -938,17 +946,9 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         x += 16;
     }
     y += hist_h + 12;
-    // Two lines: one would run past the right edge of the narrowest report.
-    draw_text(&mut img, 10, y, "swap matrix: row = shape, column = appearance", black, 1);
+    draw_text(&mut img, 10, y, SWAP_CAPTION, black, 1);
     y += 14;
-    draw_text(
-        &mut img,
-        10,
-        y,
-        "bars: structure (left) and colour (right). green yes, red no, grey not counted",
-        black,
-        1,
-    );
+    draw_text(&mut img, 10, y, BARS_CAPTION, black, 1);
     y += 14;
     let sw = io::to_rgb8(&io::grid(&r.swap_images, k), false)?;
     for i in 0..k {
