@@ -320,9 +320,13 @@ pub fn save_interpolated(a: &Path, b: &Path, t: f64, groups: &[(String, f64)], o
     if !(0.0..=1.0).contains(&t) {
         return Err(Error::Invalid(format!("t is {t}, expected a weight in [0, 1] (0 gives the first generator)")));
     }
-    for (prefix, tg) in groups {
+    for (i, (prefix, tg)) in groups.iter().enumerate() {
         if !(0.0..=1.0).contains(tg) {
             return Err(Error::Invalid(format!("the weight of {prefix} is {tg}, expected a weight in [0, 1]")));
+        }
+        // Two weights for one prefix would leave the choice to the order they came in.
+        if groups[..i].iter().any(|(p, _)| p == prefix) {
+            return Err(Error::Invalid(format!("{prefix} is given a weight twice, expected each prefix once")));
         }
     }
     let ga = load_generator(a, Device::Cpu, Kind::Float)?;
@@ -496,6 +500,9 @@ mod tests {
             e.contains("template.tr names no parameter") && e.contains("template.sigma_head, template.trunk"),
             "{e}"
         );
+        let twice = [("deform".to_string(), 0.5), ("deform".to_string(), 0.5)];
+        let e = save_interpolated(&a, &b, 0.25, &twice, &out).unwrap_err().to_string();
+        assert!(e.contains("deform is given a weight twice"), "{e}");
         let e = save_interpolated(&a, &b, 0.25, &[("deform".into(), 2.0)], &out).unwrap_err().to_string();
         assert!(e.contains("the weight of deform is 2") && e.contains("[0, 1]"), "{e}");
         let e = save_interpolated(&a, &b, 1.5, &[], &out).unwrap_err().to_string();
