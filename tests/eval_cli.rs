@@ -253,12 +253,13 @@ fn probe_learns_and_eval_is_calibrated() {
         assert!(!bad.status.success() && err.contains(expect), "{flags:?}: {err}");
     }
 
-    // Training scores its EMA generator every eval.interval steps into metrics.jsonl.
+    // Training scores its EMA generator every eval.interval steps onto the run's learning
+    // curve, exactly as `gdrf-train eval --seeds` scores the checkpoint of that step.
     let config = common::tiny_training_toml(
         "seed = 1\nthreads = 2",
-        "total_steps = 2\nlog_interval = 1\ncheckpoint_interval = 1000\nsample_interval = 0",
+        "total_steps = 4\nlog_interval = 1\ncheckpoint_interval = 2\nkeep_checkpoints = 5\nsample_interval = 0",
         &format!(
-            "[eval]\ninterval = 2\nnum = 8\nswap = 2\nsteps = 4\nprobe = {:?}\n\n[[stages]]\nfrom_step = 0\nresolution = 8\nnum_steps = 4\nbatch_size = 2\n\n[data]\npath = {:?}\n",
+            "[eval]\ninterval = 2\nnum = 8\nswap = 3\nsteps = 4\nresolution = 16\nseeds = [0, 3]\nprobe = {:?}\n\n[[stages]]\nfrom_step = 0\nresolution = 8\nnum_steps = 4\nbatch_size = 2\n\n[data]\npath = {:?}\n",
             probe.to_str().unwrap(),
             d
         ),
@@ -267,23 +268,77 @@ fn probe_learns_and_eval_is_calibrated() {
     std::fs::write(&cfg, config).unwrap();
     let run = tmp.path("run");
     gdrf_train(&["--config", cfg.to_str().unwrap(), "--run-dir", run.to_str().unwrap(), "--quiet"]);
-    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
-    let evals: Vec<serde_json::Value> = metrics
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(run.join("curve.jsonl"))
+        .unwrap()
         .lines()
-        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-        .filter(|v| v["event"] == "eval")
+        .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-    assert_eq!(evals.len(), 1, "{metrics}");
-    assert_eq!(evals[0]["step"], 2);
-    assert!(evals[0]["frechet"].as_f64().unwrap() > 0.0);
-    assert!(evals[0]["real_end"]["frechet"].as_f64().unwrap() > 0.0);
-    assert!(evals[0]["coverage_tv"].as_f64().is_some());
-    for e in [&evals[0], &evals[0]["real_end"]] {
-        let (plain, in_frame) =
-            (e["pose_yaw_error_deg"].as_f64().unwrap(), e["pose_yaw_error_in_frame_deg"].as_f64().unwrap());
-        assert!(in_frame <= plain, "in frame {in_frame} > plain {plain}: {e}");
-        assert!((-180.0..180.0).contains(&e["yaw_frame_offset_deg"].as_f64().unwrap()), "{e}");
+    assert_eq!(lines.iter().map(|l| l["step"].as_i64().unwrap()).collect::<Vec<_>>(), [2, 4]);
+    assert_eq!(lines[1]["images_seen"], 8);
+    for l in &lines {
+        assert_eq!(l["scores"]["seeds"], serde_json::json!([0, 3]));
+        assert_eq!((l["scores"]["images"].as_i64(), l["scores"]["resolution"].as_i64()), (Some(8), Some(16)));
+        assert!(l["step_seconds"].as_f64().unwrap() > 0.0 && l["eval_seconds"].as_f64().unwrap() > 0.0, "{l}");
+        assert!(l["train_seconds"].as_f64().unwrap() > 0.0, "{l}");
     }
+    assert!(lines[1]["train_seconds"].as_f64() > lines[0]["train_seconds"].as_f64());
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    assert!(!metrics.contains("\"eval\""), "the curve is the one record of the scores");
+    // Step 2 from its training checkpoint, step 4 from the generator kept beside its scores.
+    for step in [2, 4] {
+        let ckpt = match step {
+            2 => run.join("checkpoints/step-00000002.safetensors"),
+            _ => run.join("evals/step-00000004/generator.safetensors"),
+        };
+        let out = tmp.path(&format!("curve-cli-{step}"));
+        gdrf_train(&[
+            "eval",
+            "--generator",
+            ckpt.to_str().unwrap(),
+            "--dataset",
+            d,
+            "--probe",
+            probe.to_str().unwrap(),
+            "--num",
+            "8",
+            "--swap",
+            "3",
+            "--steps",
+            "4",
+            "--resolution",
+            "16",
+            "--seeds",
+            "0,3",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        let cli: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("seeds.json")).unwrap()).unwrap();
+        let curve = &lines[step / 2 - 1]["scores"];
+        assert_same_numbers(&curve["scores"], &cli["scores"], &format!("curve at step {step}"));
+        // The evaluation's full record sits beside the curve, as the CLI writes it.
+        let dir = run.join(format!("evals/step-{step:08}"));
+        for f in ["seeds.json", "seed-0/eval.json", "seed-0/report.png", "seed-3/report.png", "frame.png"] {
+            assert!(dir.join(f).is_file(), "{}", dir.join(f).display());
+        }
+    }
+    // The plot: four panels of 520 × 320 and a caption; the filmstrip: a row per evaluation,
+    // each 16 px samples (two rows of four) beside the swap matrix's 3 × 3.
+    let plot = image::open(run.join("curve.png")).unwrap().to_rgb8();
+    assert_eq!(plot.dimensions(), (1040, 658));
+    let strip = image::open(run.join("filmstrip.png")).unwrap().to_rgb8();
+    assert_eq!(strip.dimensions(), (96 + 4 * 16 + 8 + 3 * 16 + 6, 2 * (3 * 16 + 6) + 6));
+    // Resumed from the step-2 checkpoint, the run drops the later evaluation and makes it
+    // again, identically.
+    std::fs::remove_file(run.join("checkpoints/step-00000004.safetensors")).unwrap();
+    gdrf_train(&["--resume", run.to_str().unwrap(), "--quiet"]);
+    let again: Vec<serde_json::Value> = std::fs::read_to_string(run.join("curve.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(again.len(), 2);
+    assert_same_numbers(&again[1]["scores"]["scores"], &lines[1]["scores"]["scores"], "resumed curve");
 }
 
 #[test]

@@ -310,6 +310,70 @@ fn a_non_finite_state_is_never_checkpointed() {
     assert_eq!(run::list_checkpoints(&dir.path("run")).unwrap(), before, "nothing was written");
 }
 
+/// The one-render step equals the release's two renders of the same images: its
+/// discriminator update is the release's D step on the generator's draws (which renders
+/// them again without gradients), and its generator gradient, taken on the kept graph
+/// through the updated discriminator, is the release's generator pass (which renders them
+/// again with gradients) through that discriminator. Both with the mode-seeking pairs, in
+/// two chunks, with R1 due and DiffAugment's draws on.
+#[test]
+fn the_one_render_step_equals_two_renders_of_the_same_images() {
+    let dir = TempDir::new("train-one-render");
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.stages.truncate(1);
+    cfg.stages[0].batch_size = 4;
+    cfg.stages[0].batch_split = 2;
+    cfg.loss.diversity_weight = 5.0;
+    cfg.discriminator.augment = vec![Augmentation::Translation, Augmentation::Cutout];
+    assert!(cfg.loss.r1_due(0));
+    let mut two = Trainer::new(cfg.clone(), &dir.path("two")).unwrap();
+    two.prepare_data(&|| {}).unwrap();
+    cfg.step = gdrf_core::train::StepKind::OneRender;
+    let mut one = Trainer::new(cfg, &dir.path("one")).unwrap();
+    let d0 = params(&one.dvs);
+    assert!(same_params(&d0, &params(&two.dvs)) && same_params(&params(&one.gvs), &params(&two.gvs)));
+
+    let terms_one = one.one_render_gradients_now().unwrap();
+    two.discriminator_step_on_generator_draws_now().unwrap();
+    let terms_two = two.generator_gradients_now().unwrap();
+
+    // The same discriminator update, and it did move.
+    let (d_one, d_two) = (params(&one.dvs), params(&two.dvs));
+    assert!(!same_params(&d_one, &d0));
+    let mut moved = 0;
+    for (((name, a), (_, b)), (_, before)) in d_one.iter().zip(&d_two).zip(&d0) {
+        assert!(a.allclose(b, 1e-5, 1e-7, false), "D {name}: max |Δ| {}", max_abs(&(a - b)));
+        moved += (!a.equal(before)) as usize;
+    }
+    assert!(moved > 5, "{moved} D tensors moved");
+    // The same generator loss and gradient through the updated discriminator.
+    let names: Vec<_> = terms_one.iter().map(|t| t.0).collect();
+    assert!(names.contains(&"g_diversity") && names.contains(&"reg_smoothness"), "{names:?}");
+    for ((na, va), (nb, vb)) in terms_one.iter().zip(&terms_two) {
+        assert_eq!(na, nb);
+        assert!((va - vb).abs() <= 1e-5 * (1.0 + vb.abs()), "{na}: {va} against {vb}");
+    }
+    let (ga, gb) = (one.gvs.variables(), two.gvs.variables());
+    let mut checked = 0;
+    for (name, a) in &ga {
+        let (a, b) = (a.grad(), gb[name].grad());
+        assert!(a.defined() && b.defined(), "{name} has a gradient in both");
+        let scale = max_abs(&b);
+        assert!(a.allclose(&b, 1e-4, 1e-6 * scale.max(1e-12), false), "G {name}: max |Δ| {}", max_abs(&(&a - &b)));
+        checked += (scale > 0.0) as usize;
+    }
+    assert!(checked > 20, "{checked} non-zero G gradients");
+    // And it is a step of its own in the loop: a patch stage is refused by name.
+    let mut bad = tiny_config(&dir.0, "step = \"one-render\"");
+    bad.stages[0].regions = 4;
+    let e = bad.validate().unwrap_err().to_string();
+    assert!(e.contains("one-render") && e.contains("stages[0].regions"), "{e}");
+}
+
+fn max_abs(t: &Tensor) -> f64 {
+    f64::try_from(t.abs().max()).unwrap()
+}
+
 /// The two-pass patch step (no-grad render, D's gradient w.r.t. the image, each band
 /// re-rendered with gradients at the same depths) gives the single-pass gradient.
 #[test]
@@ -361,7 +425,7 @@ fn every_shipped_config_loads_and_validates() {
         }
     }
     names.sort();
-    assert_eq!(names, ["carla", "cars", "chairs", "chairs-tiny"]);
+    assert_eq!(names, ["carla", "cars", "chairs", "chairs-campaign", "chairs-tiny"]);
 }
 
 #[test]

@@ -29,6 +29,23 @@ pub struct GeneratorConfig {
     /// so shapes differ with the code from the first step (an option for small budgets,
     /// see docs/training.md).
     pub deform_head_frequency: f64,
+    /// The deformation head's initial bias. `uniform` (the release): U(±1/√H), so that
+    /// every code starts with the same Δx offset and Δσ = `correct_scale` · bias is added to
+    /// every density, up to ±12.5 at H = 64 (an empty volume, where softplus′ stalls the
+    /// density, or fog, by the draw); `zero`: no offset at any width, so every density
+    /// starts as the template's.
+    pub deform_head_bias: HeadBias,
+}
+
+/// How the deformation head's bias starts ([`GeneratorConfig::deform_head_bias`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum HeadBias {
+    /// U(±1/√H), PyTorch's nn.Linear default (the release).
+    #[default]
+    Uniform,
+    /// Zero.
+    Zero,
 }
 
 impl Default for GeneratorConfig {
@@ -43,6 +60,7 @@ impl Default for GeneratorConfig {
             correct_scale: 100.0,
             deform_scale: 1.0,
             deform_head_frequency: 0.0,
+            deform_head_bias: HeadBias::Uniform,
         }
     }
 }

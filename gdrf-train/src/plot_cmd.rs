@@ -1,8 +1,9 @@
-//! `gdrf-train plot RUN_DIR`: loss curves and training health from metrics.jsonl.
+//! `gdrf-train plot RUN_DIR`: loss curves and training health from metrics.jsonl, and the
+//! learning curve from curve.jsonl.
 use anyhow::{bail, Result};
 use clap::Args;
 use gdrf_core::plot::{draw_panels, smooth, Panel, Series};
-use gdrf_core::train::run;
+use gdrf_core::train::{curve, run};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -46,7 +47,6 @@ fn lookup(v: &serde_json::Value, path: &str) -> f64 {
 
 pub fn plot(a: PlotArgs) -> Result<()> {
     let all = run::read_metrics(&a.run_dir)?;
-    let evals: Vec<_> = all.iter().filter(|r| r["event"] == "eval").cloned().collect();
     let records: Vec<_> = all.into_iter().filter(|r| r.get("event").is_none()).collect();
     if records.is_empty() {
         bail!("{}: metrics.jsonl holds no logged step yet", a.run_dir.display());
@@ -68,31 +68,13 @@ pub fn plot(a: PlotArgs) -> Result<()> {
                 .collect(),
         })
         .collect();
-    let mut panels = panels;
-    // The `[eval]` scores, each beside its real-data end.
-    for (title, key) in [
-        ("eval: frechet distance", "frechet"),
-        ("eval: coverage tv", "coverage_tv"),
-        ("eval: appearance follows j", "appearance_follows"),
-    ] {
-        if evals.is_empty() {
-            break;
-        }
-        let pts = |path: &str| {
-            evals.iter().map(|r| (r["step"].as_f64().unwrap_or(f64::NAN), lookup(r, path))).collect::<Vec<_>>()
-        };
-        panels.push(Panel {
-            title: title.to_string(),
-            log_y: false,
-            series: vec![
-                Series { name: "model".into(), points: pts(key) },
-                Series { name: "real".into(), points: pts(&format!("real_end.{key}")) },
-            ],
-        });
-    }
     let img = draw_panels(&panels, 4, 360, 240);
     let out = a.out.unwrap_or_else(|| a.run_dir.join("losses.png"));
     gdrf_core::io::save_png(&out, &img)?;
     println!("wrote {} ({} logged steps, moving average over {})", out.display(), records.len(), a.smooth);
+    // The learning curve, where the run scores itself (`[eval] interval`).
+    if let (Some(c), Some(f)) = (curve::plot(&a.run_dir)?, curve::filmstrip(&a.run_dir)?) {
+        println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), curve::read(&a.run_dir)?.len());
+    }
     Ok(())
 }

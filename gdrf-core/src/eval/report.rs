@@ -695,36 +695,39 @@ pub fn evaluate_seeds(
     for &seed in seeds {
         ev.reseed(seed)?;
         let what = if seeds.len() > 1 { format!(" (seed {seed})") } else { String::new() };
-        out.push(score_one(&ev, &loaded, (generator, dataset), &what, start, progress)?);
+        let names = (generator.display().to_string(), dataset);
+        out.push(score_generator(&ev, &loaded.generator, &loaded.header, names, &what, start, progress)?);
         start = std::time::Instant::now();
     }
     Ok(out)
 }
 
-/// One seed's [`EvalResult`] (the seed is the evaluator's); `what` follows the progress
-/// labels.
-fn score_one(
+/// One seed's [`EvalResult`] (the seed is the evaluator's) of `generator`, whose header
+/// `header` gives its camera and provenance: the model beside a random-weight generator of
+/// its architecture and the evaluator's real end. `names` (the generator as shown, the
+/// dataset) go into the result; `what` follows the progress labels.
+pub fn score_generator(
     ev: &Evaluator,
-    loaded: &crate::checkpoint::LoadedGenerator,
-    (generator, dataset): (&Path, &Path),
+    generator: &Generator,
+    header: &crate::checkpoint::Header,
+    (name, dataset): (String, &Path),
     what: &str,
     start: std::time::Instant,
     progress: &mut dyn FnMut(&str, i64, i64),
 ) -> Result<EvalResult> {
     let (opts, device) = (&ev.opts, ev.device);
-    let cam = loaded.header.camera.clone().unwrap_or_default();
+    let cam = header.camera.clone().unwrap_or_default();
     let rvs = nn::VarStore::new(device);
-    let random =
-        crate::rng::with_global_seed(opts.seed as i64 + 1, || Generator::new(&rvs.root(), &loaded.generator.cfg))?;
-    let trunc = loaded.generator.truncation_at(opts.psi);
-    let model = ev.score(&loaded.generator, &cam, trunc.as_ref(), &format!("model{what}"), progress)?;
+    let random = crate::rng::with_global_seed(opts.seed as i64 + 1, || Generator::new(&rvs.root(), &generator.cfg))?;
+    let trunc = generator.truncation_at(opts.psi);
+    let model = ev.score(generator, &cam, trunc.as_ref(), &format!("model{what}"), progress)?;
     let rand = ev.score(&random, &cam, None, &format!("random generator{what}"), progress)?;
     let real = &ev.real;
     let mut warnings: Vec<String> = Vec::new();
-    if matches!(opts.features, FeatureKind::Efficientnet) && trained_against_projected(&loaded.header) {
+    if matches!(opts.features, FeatureKind::Efficientnet) && trained_against_projected(header) {
         warnings.push(SHARED_FEATURES_WARNING.into());
     }
-    warnings.extend(resolution_warning(&loaded.header, ev.resolution));
+    warnings.extend(resolution_warning(header, ev.resolution));
     for w in model.warnings.iter().chain(&rand.warnings).chain(&real.warnings) {
         if !warnings.contains(w) {
             warnings.push(w.clone());
@@ -744,7 +747,7 @@ fn score_one(
         .collect();
     let c = |f: fn(&Scores) -> f64| Calibrated::new(f(&model), f(real), f(&rand));
     Ok(EvalResult {
-        generator: generator.display().to_string(),
+        generator: name,
         dataset: dataset.display().to_string(),
         features: match &opts.features {
             FeatureKind::Efficientnet => "efficientnet-lite0 pooled (1280-d, 224², ImageNet)".into(),

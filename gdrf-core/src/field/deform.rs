@@ -1,5 +1,5 @@
 //! Φ: the deformation + correction field, a FiLM-SIREN driven by the shape modulation.
-use crate::config::GeneratorConfig;
+use crate::config::{GeneratorConfig, HeadBias};
 use crate::nn::film::{Film, FilmLayer};
 use crate::nn::{Linear, WeightInit};
 use tch::{nn, Kind, Tensor};
@@ -8,7 +8,8 @@ use tch::{nn, Kind, Tensor};
 pub struct DeformField {
     pub film: Vec<FilmLayer>,
     /// 256 → 4: Δx (3) and raw Δσ (1). Zero weight at init, so Δx starts constant and
-    /// ∂Δx/∂x is exactly zero (with `deform_head_frequency`, only the Δσ row is zero).
+    /// ∂Δx/∂x is exactly zero (with `deform_head_frequency`, only the Δσ row is zero); the
+    /// bias as `deform_head_bias` says.
     pub head: Linear,
     hidden: usize,
     correct_scale: f64,
@@ -29,14 +30,18 @@ impl DeformField {
         } else {
             WeightInit::Zeros
         };
-        let head = Linear::new(vs / "head", h, 4, init);
-        if cfg.deform_head_frequency > 0.0 {
-            // Only the Δx rows start non-zero: the Δσ row is scaled by `correct_scale`
-            // (100), and at f = 50 a random Δσ row filled the volume with grey fog.
-            tch::no_grad(|| {
+        let mut head = Linear::new(vs / "head", h, 4, init);
+        tch::no_grad(|| {
+            if cfg.deform_head_frequency > 0.0 {
+                // Only the Δx rows start non-zero: the Δσ row is scaled by `correct_scale`
+                // (100), and at f = 50 a random Δσ row filled the volume with grey fog.
                 let _ = head.weight.narrow(0, 3, 1).zero_();
-            });
-        }
+            }
+            // Zeroed after the draw, so every other initial weight is the same either way.
+            if cfg.deform_head_bias == HeadBias::Zero {
+                let _ = head.bias.zero_();
+            }
+        });
         Self { film, head, hidden: h, correct_scale: cfg.correct_scale, deform_scale: cfg.deform_scale }
     }
 

@@ -41,6 +41,11 @@ pub struct LossConfig {
     /// The mode-seeking term compares images averaged over blocks of this many pixels
     /// per side (1 = every pixel).
     pub diversity_pool: i64,
+    /// The mode-seeking weight falls linearly from `diversity_weight` at step 0 to 0 at this
+    /// step, after which the term is off and the generator's batch is no longer rendered in
+    /// pairs (0 = a constant weight). The term breaks the symmetry of a fresh generator; late
+    /// in a run it only rewards codes for differing, also by an object turned per code.
+    pub diversity_decay: i64,
     /// The deformation regularisers' weights ramp linearly from 0 over this many steps
     /// (0 = full weight from step 0, as in the release), so that shapes can first vary with
     /// the code before smoothness, rigidity and normal consistency pull them together.
@@ -75,6 +80,7 @@ impl Default for LossConfig {
             diversity_weight: 0.0,
             diversity_cap: 0.1,
             diversity_pool: 4,
+            diversity_decay: 0,
             reg_warmup: 0,
             coverage_weight: 0.0,
             coverage_candidates: 16,
@@ -120,6 +126,12 @@ impl LossConfig {
             return Err(Error::Config(format!(
                 "loss.coverage_resolution is {}, expected 2 to 512 pixels",
                 self.coverage_resolution
+            )));
+        }
+        if self.diversity_decay < 0 {
+            return Err(Error::Config(format!(
+                "loss.diversity_decay is {}, expected 0 (a constant weight) or a number of steps",
+                self.diversity_decay
             )));
         }
         if self.reg_warmup < 0 {
@@ -174,6 +186,16 @@ impl LossConfig {
             1.0
         } else {
             (step.max(0) as f64 / self.reg_warmup as f64).min(1.0)
+        }
+    }
+
+    /// The mode-seeking weight at `step`: `diversity_weight`, falling linearly to 0 at
+    /// `diversity_decay` when that is set.
+    pub fn diversity_at(&self, step: i64) -> f64 {
+        if self.diversity_decay <= 0 {
+            self.diversity_weight
+        } else {
+            self.diversity_weight * (1.0 - step.max(0) as f64 / self.diversity_decay as f64).max(0.0)
         }
     }
 
@@ -233,7 +255,8 @@ pub fn generator_image_terms(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let mut l = generator_adversarial(fake, poses, z, at, cfg)?;
-    if let (true, Some(z)) = (cfg.diversity_weight != 0.0, z) {
+    let weight = cfg.diversity_at(at.step);
+    if let (true, Some(z)) = (weight != 0.0, z) {
         let b = img.size()[0];
         if b % 2 != 0 || z.size()[0] != b {
             return Err(Error::Invalid(format!(
@@ -242,7 +265,7 @@ pub fn generator_image_terms(
             )));
         }
         let d = gan::mode_seeking(img, z, cfg.diversity_cap, cfg.diversity_pool);
-        l.total = l.total + &d * cfg.diversity_weight;
+        l.total = l.total + &d * weight;
         l.terms.push(("g_diversity", d));
     }
     Ok(l)
@@ -458,6 +481,16 @@ mod tests {
         assert!(e.contains("loss.diversity_weight"), "{e}");
         assert!(LossConfig { diversity_cap: 0.0, ..Default::default() }.validate().is_err());
         assert!(LossConfig { diversity_pool: 0, ..Default::default() }.validate().is_err());
+        // The mode-seeking decay: 40 → 30 at a quarter, 0 from the decay step on, where the
+        // term is no longer added.
+        let decaying = LossConfig { diversity_weight: 40.0, diversity_decay: 1000, ..on.clone() };
+        let w: Vec<f64> = [0, 250, 1000, 5000].iter().map(|&s| decaying.diversity_at(s)).collect();
+        assert_eq!(w, [40.0, 30.0, 0.0, 0.0]);
+        assert_eq!(on.diversity_at(1_000_000), 3.0);
+        let late = generator_image_terms(&d, &img, &poses, Some(&z), Schedule { step: 1000, alpha: 1.0 }, &decaying);
+        assert!(late.unwrap().get("g_diversity").is_none());
+        let e = LossConfig { diversity_decay: -1, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("loss.diversity_decay"), "{e}");
         // The regularisers' warm-up: none at step 0, half way at 50, full from 100 on.
         let warm = LossConfig { reg_warmup: 100, ..Default::default() };
         assert_eq!(

@@ -107,8 +107,8 @@ impl Default for ScheduleConfig {
     }
 }
 
-/// Scores of the EMA generator during training (`gdrf-train eval`'s code on fewer images),
-/// written to metrics.jsonl as `{"event": "eval", …}` lines.
+/// Scores of the EMA generator during training: `gdrf-train eval --seeds`'s code, whose
+/// results make the run's learning curve ([`super::curve`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainEvalConfig {
@@ -120,13 +120,18 @@ pub struct TrainEvalConfig {
     pub swap: i64,
     /// Coarse samples per ray (as many fine).
     pub steps: i64,
+    /// Image side the generator is scored at (0 = the dataset's).
+    pub resolution: i64,
+    /// Evaluation seeds (each draws other codes, poses and random end; empty = the run's
+    /// `seed`).
+    pub seeds: Vec<u64>,
     /// The probe from `gdrf-train eval train-probe`, relative to the config file.
     pub probe: Option<std::path::PathBuf>,
 }
 
 impl Default for TrainEvalConfig {
     fn default() -> Self {
-        Self { interval: 0, num: 200, swap: 4, steps: 12, probe: None }
+        Self { interval: 0, num: 200, swap: 4, steps: 12, resolution: 0, seeds: Vec::new(), probe: None }
     }
 }
 
@@ -200,6 +205,21 @@ impl Precision {
     }
 }
 
+/// How a training step renders the generator's images.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StepKind {
+    /// The release's: the discriminator step renders fakes of its own without gradients,
+    /// then the generator step renders its batch with gradients.
+    #[default]
+    TwoRender,
+    /// The generator's batch is rendered once, with its graph: the discriminator steps on
+    /// those images (detached), then the generator's loss goes through the updated
+    /// discriminator on the same graph. It drops the no-grad render, about a quarter of a
+    /// step, and needs every stage's `regions` to be 1.
+    OneRender,
+}
+
 /// A whole training run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -212,6 +232,9 @@ pub struct TrainConfig {
     pub device: String,
     #[serde(default)]
     pub precision: Precision,
+    /// `two-render` (the release) or `one-render` ([`StepKind`]).
+    #[serde(default)]
+    pub step: StepKind,
     /// libtorch threads (0 = all cores).
     #[serde(default)]
     pub threads: usize,
@@ -363,6 +386,15 @@ impl TrainConfig {
                 e.interval, e.num, e.swap, e.steps
             )));
         }
+        if e.resolution != 0 && !(8..=512).contains(&e.resolution) {
+            return Err(cfg_err(format!(
+                "eval.resolution is {}, expected 0 (the dataset's) or 8 to 512 pixels",
+                e.resolution
+            )));
+        }
+        if let Some(k) = e.seeds.iter().enumerate().position(|(i, s)| e.seeds[..i].contains(s)) {
+            return Err(cfg_err(format!("eval.seeds lists seed {} twice", e.seeds[k])));
+        }
         if e.interval > 0 && e.probe.is_none() {
             return Err(cfg_err(format!(
                 "eval.interval is {} but eval.probe is not set: scores need a probe (make one with `gdrf-train eval train-probe --dataset DIR`)",
@@ -431,6 +463,13 @@ impl TrainConfig {
                     key("batch_size"),
                     key("batch_split"),
                     st.batch_size / st.batch_split
+                )));
+            }
+            if self.step == StepKind::OneRender && st.regions != 1 {
+                return Err(cfg_err(format!(
+                    "step = \"one-render\" renders each image once with its graph, but {} is {}: the patch step needs step = \"two-render\"",
+                    key("regions"),
+                    st.regions
                 )));
             }
             if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
@@ -589,7 +628,12 @@ path = "data/x"
             ("[generator]\nlatent_dim = 300\n[loss]\nlatent_weight = 1.0", "generator.latent_dim"),
             ("[loss]\ndiversity_weight = -2.0", "loss.diversity_weight"),
             ("[eval]\ninterval = 100", "eval.probe"),
+            ("[eval]\nresolution = 4", "eval.resolution"),
+            ("[eval]\nseeds = [0, 1, 0]", "eval.seeds"),
             ("[eval]\nnum = 1", "eval"),
+            ("step = \"three-render\"", "step"),
+            ("[generator]\ndeform_head_bias = \"random\"", "deform_head_bias"),
+            ("[loss]\ndiversity_decay = -5", "loss.diversity_decay"),
         ];
         for (extra, key) in cases {
             let e = parse(extra).unwrap_err().to_string();

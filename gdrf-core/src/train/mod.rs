@@ -8,13 +8,14 @@
 //! moments, counters), a run resumed at step k computes the same step k + 1 as the
 //! uninterrupted run, bit for bit on the CPU.
 pub mod config;
+pub mod curve;
 pub mod optim;
 pub mod pass;
 pub mod run;
 pub mod samples;
 
-pub use config::{Stage, TrainConfig};
-pub use pass::{discriminator_pass, generator_pass, FakeBatch};
+pub use config::{Stage, StepKind, TrainConfig};
+pub use pass::{discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, FakeBatch};
 
 use crate::camera::Poses;
 use crate::checkpoint::{self, Header};
@@ -167,6 +168,8 @@ pub struct Trainer {
     injected: BTreeSet<i64>,
     /// The evaluation's real-data side, built at the first `eval.interval` step.
     evaluator: Option<crate::eval::report::Evaluator>,
+    /// Seconds of each step since the last evaluation (the curve's step time).
+    step_seconds: Vec<f64>,
 }
 
 impl Trainer {
@@ -229,6 +232,7 @@ impl Trainer {
             permutation: None,
             injected: BTreeSet::new(),
             evaluator: None,
+            step_seconds: Vec::new(),
         })
     }
 
@@ -238,6 +242,7 @@ impl Trainer {
         let (_, path) = run::latest_checkpoint(run_dir)?;
         let mut t = Self::from_checkpoint(&path, run_dir, device)?;
         run::truncate_metrics(run_dir, t.progress.step)?;
+        curve::truncate(run_dir, t.progress.step)?;
         t.injected.clear();
         Ok(t)
     }
@@ -365,22 +370,18 @@ impl Trainer {
         let at = Schedule { step, alpha };
         let (b, res) = (stage.batch_size, stage.resolution);
 
-        // Real batch.
-        let n_real = self.dataset(res)?.len() as i64;
-        let idx = self.real_indices(b, n_real);
-        let ds = &self.datasets[&res];
-        let flips: Option<Vec<bool>> =
-            ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
-        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
-        let real = real.to_device(self.device);
-        let real_poses = real_poses.map(|p| p.to_device(self.device));
-
-        let d = self.discriminator_step(&stage, at, &real, real_poses.as_ref(), d_lr)?;
-        let g = if g_lr > 0.0 {
-            self.generator_step(&stage, at, g_lr, &real, real_poses.as_ref())?
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let real_poses = real_poses.as_ref();
+        let (d, g) = if g_lr <= 0.0 {
+            // A discriminator-only stage: no generator render, no gradient, no EMA update.
+            let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
+            (d, Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false })
+        } else if self.cfg.step == StepKind::OneRender {
+            let (d, losses) = self.one_render_gradients(&stage, at, &real, real_poses, d_lr)?;
+            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, Some(losses))?)
         } else {
-            // A discriminator-only stage: no render, no gradient, no EMA update.
-            Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false }
+            let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
+            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, None)?)
         };
 
         let p = &mut self.progress;
@@ -418,6 +419,20 @@ impl Trainer {
             report.rolled_back_to = Some(self.rollback()?);
         }
         Ok(report)
+    }
+
+    /// The real images of `step` at `stage`'s resolution, and their poses where known (the
+    /// next `batch_size` positions of the epoch permutations; the counter moves on in
+    /// [`Trainer::step`]).
+    fn real_batch(&mut self, stage: &Stage, step: i64) -> Result<(Tensor, Option<Tensor>)> {
+        let (b, res) = (stage.batch_size, stage.resolution);
+        let n_real = self.dataset(res)?.len() as i64;
+        let idx = self.real_indices(b, n_real);
+        let ds = &self.datasets[&res];
+        let flips: Option<Vec<bool>> =
+            ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
+        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
+        Ok((real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))))
     }
 
     /// The live generator's renderer with sampling config `rc`, at the configured precision.
@@ -460,18 +475,25 @@ impl Trainer {
     ) -> Result<Update> {
         let purposes = [Purpose::DiscCodes, Purpose::DiscPoses, Purpose::DiscJitter, Purpose::DiscImportance];
         let (z, poses, noise) = self.fake_draws(stage, at.step, purposes);
+        self.discriminator_step_on(stage, at, real, real_poses, (&z, &poses, &noise), lr)
+    }
+
+    /// The release's discriminator step on fakes of the codes, poses and noise `draws`.
+    fn discriminator_step_on(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        (z, poses, noise): (&Tensor, &Poses, &Noise),
+        lr: f64,
+    ) -> Result<Update> {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
-        let lat = tch::no_grad(|| self.generator.latents(&z, &z, None));
-        let fake = FakeBatch {
-            latents: &lat,
-            poses: &poses,
-            z: Some(&z),
-            resolution: stage.resolution,
-            regions: stage.regions,
-            noise: &noise,
-        };
+        let lat = tch::no_grad(|| self.generator.latents(z, z, None));
+        let fake =
+            FakeBatch { latents: &lat, poses, z: Some(z), resolution: stage.resolution, regions: stage.regions, noise };
         let augmented = self.augmented(at.step, Purpose::DiscAugment);
         let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
         let losses = discriminator_pass(&renderer, judge, real, real_poses, &fake, at, &self.cfg.loss)?;
@@ -488,8 +510,13 @@ impl Trainer {
         lr: f64,
         real: &Tensor,
         real_poses: Option<&Tensor>,
+        rendered_once: Option<Losses>,
     ) -> Result<Update> {
-        let mut losses = self.generator_gradients(stage, at)?;
+        // The one-render step has already left its gradient in G.
+        let mut losses = match rendered_once {
+            Some(l) => l,
+            None => self.generator_gradients(stage, at)?,
+        };
         if self.cfg.loss.coverage_weight > 0.0 {
             let poses = real_poses.ok_or_else(|| {
                 Error::Config(
@@ -575,13 +602,35 @@ impl Trainer {
     /// Renders the generator's batch chunk by chunk and accumulates the gradient of the
     /// batch-mean loss into the generator's variables (D frozen throughout).
     fn generator_gradients(&mut self, stage: &Stage, at: Schedule) -> Result<Losses> {
+        let draws = self.generator_draws(stage, at.step);
+        // The generator step leaves D's parameters alone: frozen, they get no gradient.
+        self.dvs.freeze();
+        zero_grads(&self.gvs);
+        let split = stage.batch_split;
+        let mut mean = ChunkMean::default();
+        // One augmentation stream for the step: successive chunks get successive draws.
+        let augmented = self.augmented(at.step, Purpose::GenAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let result = (|| -> Result<()> {
+            for c in 0..split {
+                let losses = self.generator_chunk(judge, stage, at, &draws.chunk(c, split), split as f64)?;
+                mean.add(&losses, split);
+            }
+            Ok(())
+        })();
+        self.dvs.unfreeze();
+        result?;
+        Ok(mean.losses())
+    }
+
+    /// The generator's draws of `step`: codes, poses and renderer noise (in pairs sharing a
+    /// pose and depths while the mode-seeking term is on, so that a pair's difference is
+    /// its codes' alone), the regulariser rays, and whether a fault is injected.
+    fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
         let (b, res) = (stage.batch_size, stage.resolution);
-        let step = at.step;
         let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
         let (z, poses, noise) = self.fake_draws(stage, step, purposes);
-        // The mode-seeking term compares two codes' images at one pose, sampled at the same
-        // depths, so that their difference is the codes' alone.
-        let (poses, noise) = if self.cfg.loss.diversity_weight > 0.0 {
+        let (poses, noise) = if self.cfg.loss.diversity_at(step) > 0.0 {
             let pair = |t: &Option<Tensor>| t.as_ref().map(crate::camera::rows_in_pairs);
             (poses.in_pairs(), Noise { jitter: pair(&noise.jitter), importance: pair(&noise.importance) })
         } else {
@@ -593,62 +642,138 @@ impl Trainer {
                 .view([b, n_reg])
                 .to_device(self.device);
         let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
+        GenDraws { z, poses, noise, reg_rays, inject }
+    }
 
-        // The generator step leaves D's parameters alone: frozen, they get no gradient.
-        self.dvs.freeze();
-        zero_grads(&self.gvs);
+    /// The one-render step ([`StepKind::OneRender`]) up to the generator's update: renders
+    /// the generator's batch once with its graph, takes the discriminator's step on those
+    /// images (detached), then leaves in G the gradient of the batch-mean loss through the
+    /// updated discriminator on the same graph. Returns D's update and G's losses.
+    fn one_render_gradients(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        d_lr: f64,
+    ) -> Result<(Update, Losses)> {
+        let draws = self.generator_draws(stage, at.step);
         let split = stage.batch_split;
-        let chunk = b / split;
-        let mut sums: Vec<(&'static str, f64)> = Vec::new();
-        let mut total = 0.0;
-        // One augmentation stream for the step: successive chunks get successive draws.
-        let augmented = self.augmented(step, Purpose::GenAugment);
+        let rc = self.cfg.render_config(at.step);
+        zero_grads(&self.gvs);
+        // Every chunk's graph is kept until the generator's backward.
+        let rendered = {
+            let renderer = self.live_renderer(&rc)?;
+            (0..split)
+                .map(|c| {
+                    let d = draws.chunk(c, split);
+                    let lat = self.generator.latents(&d.z, &d.z, None);
+                    let (img, parts) = renderer.render_regions(&lat, &d.poses, stage.resolution, 1, &d.noise)?;
+                    Ok((d, lat, img, parts))
+                })
+                .collect::<Result<Vec<_>>>()?
+        };
+        let fakes = Tensor::cat(&rendered.iter().map(|r| r.2.detach()).collect::<Vec<_>>(), 0);
+        let d = {
+            let augmented = self.augmented(at.step, Purpose::DiscAugment);
+            let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+            let losses = discriminator_judgement(
+                judge,
+                real,
+                real_poses,
+                &fakes,
+                &draws.poses,
+                Some(&draws.z),
+                at,
+                &self.cfg.loss,
+            )?;
+            zero_grads(&self.dvs);
+            losses.total.backward();
+            losses
+        };
+        let d = self.apply(Net::D, &d, d_lr);
+        self.dvs.freeze();
+        let mut mean = ChunkMean::default();
+        let fault = if draws.inject { f64::NAN } else { 1.0 };
+        let augmented = self.augmented(at.step, Purpose::GenAugment);
         let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
         let result = (|| -> Result<()> {
-            for c in 0..split {
-                let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
-                let z = sl(&z);
-                let poses = poses.narrow(c * chunk, chunk);
-                let noise =
-                    Noise { jitter: noise.jitter.as_ref().map(sl), importance: noise.importance.as_ref().map(sl) };
-                let losses =
-                    self.generator_chunk(judge, stage, at, &z, &poses, &noise, &sl(&reg_rays), split as f64, inject)?;
-                total += losses.total.double_value(&[]) / split as f64;
-                for (i, (k, v)) in losses.values().into_iter().enumerate() {
-                    if i == sums.len() {
-                        sums.push((k, 0.0));
-                    }
-                    sums[i].1 += v / split as f64;
-                }
+            for (d, lat, img, parts) in &rendered {
+                let fake = FakeBatch {
+                    latents: lat,
+                    poses: &d.poses,
+                    z: Some(&d.z),
+                    resolution: stage.resolution,
+                    regions: 1,
+                    noise: &d.noise,
+                };
+                let mut losses = generator_judgement(
+                    &self.generator,
+                    judge,
+                    img,
+                    parts,
+                    &fake,
+                    Some(&d.reg_rays),
+                    at,
+                    &self.cfg.loss,
+                )?;
+                losses.total = losses.total.g_mul_scalar(fault);
+                (&losses.total / split as f64).backward();
+                mean.add(&losses, split);
             }
             Ok(())
         })();
         self.dvs.unfreeze();
         result?;
-        Ok(Losses { total: Tensor::from(total), terms: sums.iter().map(|(k, v)| (*k, Tensor::from(*v))).collect() })
+        Ok((d, mean.losses()))
+    }
+
+    /// The one-render step's discriminator update (applied) and generator gradient (left in
+    /// G's variables, not applied) for the step about to run; returns G's loss terms. With
+    /// [`Trainer::discriminator_step_on_generator_draws_now`] and
+    /// [`Trainer::generator_gradients_now`], the same step taken the release's way (tests).
+    pub fn one_render_gradients_now(&mut self) -> Result<Vec<(&'static str, f64)>> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        let (_, d_lr) = self.cfg.learning_rates(step);
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let (_, losses) =
+            self.one_render_gradients(&stage, at, &real, real_poses.as_ref(), d_lr * self.progress.lr_scale)?;
+        Ok(losses.values())
+    }
+
+    /// The release's discriminator step (its own no-grad render) applied to the fakes of
+    /// the generator's draws of the step about to run, instead of its own draws (tests).
+    pub fn discriminator_step_on_generator_draws_now(&mut self) -> Result<()> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        let (_, d_lr) = self.cfg.learning_rates(step);
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let draws = self.generator_draws(&stage, step);
+        let lr = d_lr * self.progress.lr_scale;
+        self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), (&draws.z, &draws.poses, &draws.noise), lr)?;
+        Ok(())
     }
 
     /// Renders one chunk of the generator's batch, backpropagates its share of the loss
     /// (1/split of the chunk mean) into G's gradients and returns its (unscaled) losses.
-    #[allow(clippy::too_many_arguments)]
     fn generator_chunk(
         &self,
         judge: &dyn Judge,
         stage: &Stage,
         at: Schedule,
-        z: &Tensor,
-        poses: &Poses,
-        noise: &Noise,
-        reg_rays: &Tensor,
+        draws: &GenDraws,
         split: f64,
-        inject: bool,
     ) -> Result<Losses> {
+        let GenDraws { z, poses, noise, reg_rays, inject } = draws;
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
         let cfg = &self.cfg.loss;
         let res = stage.resolution;
-        let fault = if inject { f64::NAN } else { 1.0 };
+        let fault = if *inject { f64::NAN } else { 1.0 };
         let target = poses.stacked();
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None);
@@ -740,6 +865,7 @@ impl Trainer {
         self.progress.skipped_steps = p.skipped_steps;
         self.progress.train_seconds = p.train_seconds;
         run::truncate_metrics(&self.run_dir, to)?;
+        curve::truncate(&self.run_dir, to)?;
         run::append_metrics(
             &self.run_dir,
             &serde_json::json!({"step": to, "event": "rollback", "from_step": p.step, "lr_scale": self.progress.lr_scale}),
@@ -807,6 +933,62 @@ impl Trainer {
     }
 }
 
+/// The generator's random draws of one step ([`Trainer::generator_draws`]).
+struct GenDraws {
+    /// `(B, latent)`.
+    z: Tensor,
+    poses: Poses,
+    noise: Noise,
+    /// `(B, n)` rays of each image the regularisers are taken on.
+    reg_rays: Tensor,
+    /// A NaN is injected into this step's generator loss (`[debug]`).
+    inject: bool,
+}
+
+impl GenDraws {
+    /// Chunk `c` of `split` equal chunks of the batch.
+    fn chunk(&self, c: i64, split: i64) -> GenDraws {
+        let len = self.z.size()[0] / split;
+        let sl = |t: &Tensor| t.narrow(0, c * len, len);
+        GenDraws {
+            z: sl(&self.z),
+            poses: self.poses.narrow(c * len, len),
+            noise: Noise {
+                jitter: self.noise.jitter.as_ref().map(sl),
+                importance: self.noise.importance.as_ref().map(sl),
+            },
+            reg_rays: sl(&self.reg_rays),
+            inject: self.inject,
+        }
+    }
+}
+
+/// The batch mean of per-chunk losses (each chunk weighs 1/split).
+#[derive(Default)]
+struct ChunkMean {
+    total: f64,
+    terms: Vec<(&'static str, f64)>,
+}
+
+impl ChunkMean {
+    fn add(&mut self, chunk: &Losses, split: i64) {
+        self.total += chunk.total.double_value(&[]) / split as f64;
+        for (i, (k, v)) in chunk.values().into_iter().enumerate() {
+            if i == self.terms.len() {
+                self.terms.push((k, 0.0));
+            }
+            self.terms[i].1 += v / split as f64;
+        }
+    }
+
+    fn losses(&self) -> Losses {
+        Losses {
+            total: Tensor::from(self.total),
+            terms: self.terms.iter().map(|(k, v)| (*k, Tensor::from(*v))).collect(),
+        }
+    }
+}
+
 #[derive(Clone, Copy)]
 enum Net {
     G,
@@ -866,6 +1048,10 @@ impl Trainer {
         let first = self.progress.step;
         let s = self.cfg.schedule.clone();
         let mut saved_at = self.progress.step;
+        // An evaluation interrupted before its line was written is made up on resume.
+        if self.eval_due(first) && !curve::has(&self.run_dir, first)? {
+            self.evaluate()?;
+        }
         let stopped = loop {
             if self.progress.step >= s.total_steps {
                 break Stopped::Finished;
@@ -879,6 +1065,7 @@ impl Trainer {
                 break Stopped::Limit;
             }
             let report = self.step()?;
+            self.step_seconds.push(report.seconds);
             if let Some(to) = report.rolled_back_to {
                 saved_at = to;
             } else if report.step % s.log_interval == 0 || report.d_skipped || report.g_skipped {
@@ -893,9 +1080,8 @@ impl Trainer {
             if s.sample_interval > 0 && done % s.sample_interval == 0 {
                 samples::write_previews(self)?;
             }
-            if self.cfg.eval.interval > 0 && done % self.cfg.eval.interval == 0 {
-                let line = self.evaluate()?;
-                run::append_metrics(&self.run_dir, &line)?;
+            if self.eval_due(done) {
+                self.evaluate()?;
             }
         };
         if saved_at != self.progress.step {
@@ -907,19 +1093,27 @@ impl Trainer {
         Ok(stopped)
     }
 
-    /// Scores the EMA generator with `gdrf-train eval`'s code (`[eval]` settings, the
-    /// dataset of `[data]`): the metrics.jsonl line `{"event": "eval", "step", …}`.
+    /// Whether the curve has an evaluation at `step` (a positive multiple of `eval.interval`).
+    fn eval_due(&self, step: i64) -> bool {
+        self.cfg.eval.interval > 0 && step > 0 && step % self.cfg.eval.interval == 0
+    }
+
+    /// Scores the EMA generator as `gdrf-train eval --seeds` scores a generator file (`[eval]`
+    /// settings, the dataset of `[data]`; each seed beside its random-weight generator) and
+    /// records it on the learning curve ([`curve::record`]). Returns the curve's line.
     pub fn evaluate(&mut self) -> Result<serde_json::Value> {
-        use crate::eval::report::{EvalOptions, Evaluator, FeatureKind};
-        let e = &self.cfg.eval;
+        use crate::eval::report::{score_generator, EvalOptions, Evaluator, FeatureKind};
+        let e = self.cfg.eval.clone();
         let probe = e.probe.clone().ok_or_else(|| Error::Config("eval.probe is not set".into()))?;
+        let seeds = if e.seeds.is_empty() { vec![self.cfg.seed] } else { e.seeds.clone() };
+        let start = Instant::now();
         if self.evaluator.is_none() {
             let opts = EvalOptions {
                 num: e.num,
                 swap: e.swap,
-                resolution: None,
+                resolution: (e.resolution > 0).then_some(e.resolution),
                 steps: e.steps,
-                seed: self.cfg.seed,
+                seed: seeds[0],
                 features: FeatureKind::Efficientnet,
                 effnet_weights: crate::eval::effnet::EfficientNetLite0::default_path(),
                 threads: self.cfg.threads,
@@ -928,37 +1122,49 @@ impl Trainer {
             };
             self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
         }
-        let ev = self.evaluator.as_ref().expect("built above");
-        let start = Instant::now();
-        let s = ev.score(&self.ema_generator, &self.cfg.camera, None, "EMA generator", &mut |_, _, _| {})?;
-        let mut line = serde_json::json!({
-            "event": "eval",
-            "step": self.progress.step,
-            "images": e.num,
-            "frechet": s.frechet,
-            "kernel": s.kernel,
-            "coverage_tv": s.coverage_tv,
-            "shape_follows": s.shape_follows,
-            "appearance_follows": s.appearance_follows,
-            "pose_yaw_error_deg": s.pose.yaw,
-            "pose_yaw_error_in_frame_deg": s.pose.yaw_in_frame,
-            "yaw_frame_offset_deg": s.pose.yaw_offset,
-            "real_end": {
-                "frechet": ev.real.frechet,
-                "kernel": ev.real.kernel,
-                "coverage_tv": ev.real.coverage_tv,
-                "shape_follows": ev.real.shape_follows,
-                "appearance_follows": ev.real.appearance_follows,
-                "pose_yaw_error_deg": ev.real.pose.yaw,
-                "pose_yaw_error_in_frame_deg": ev.real.pose.yaw_in_frame,
-                "yaw_frame_offset_deg": ev.real.pose.yaw_offset,
-            },
-            "seconds": start.elapsed().as_secs_f64(),
-        });
-        if self.cfg.discriminator.kind == crate::disc::DiscKind::Projected {
-            line["warning"] = crate::eval::report::SHARED_FEATURES_WARNING.into();
+        let header = self.header("generator");
+        let name = self.run_dir.join(run::GENERATOR).display().to_string();
+        let ev = self.evaluator.as_mut().expect("built above");
+        let mut results = Vec::with_capacity(seeds.len());
+        let mut seed_start = start;
+        for &seed in &seeds {
+            ev.reseed(seed)?;
+            let what = format!(" (seed {seed})");
+            let names = (name.clone(), self.cfg.data.path.as_path());
+            results.push(score_generator(
+                ev,
+                &self.ema_generator,
+                &header,
+                names,
+                &what,
+                seed_start,
+                &mut |_, _, _| {},
+            )?);
+            seed_start = Instant::now();
         }
-        Ok(line)
+        let summary = crate::eval::seeds::summarise(&results)?;
+        let mut times = std::mem::take(&mut self.step_seconds);
+        times.sort_by(f64::total_cmp);
+        let point = curve::CurvePoint {
+            step: self.progress.step,
+            images_seen: self.progress.images_seen,
+            train_seconds: self.progress.train_seconds,
+            step_seconds: (!times.is_empty()).then(|| {
+                let m = times.len() / 2;
+                if times.len() % 2 == 1 {
+                    times[m]
+                } else {
+                    0.5 * (times[m - 1] + times[m])
+                }
+            }),
+            eval_seconds: start.elapsed().as_secs_f64(),
+            scores: &summary,
+        };
+        curve::record(&self.run_dir, &point, &results)?;
+        // The generator scored, kept whatever checkpoints are pruned later: the curve's best
+        // point can be shipped.
+        self.export_generator(&curve::eval_dir(&self.run_dir, point.step).join(run::GENERATOR))?;
+        serde_json::to_value(&point).map_err(|e| Error::Invalid(e.to_string()))
     }
 
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).

@@ -5,7 +5,7 @@ use crate::disc::Judge;
 use crate::loss::deform_reg::select_samples;
 use crate::loss::{discriminator_loss, generator_loss, LossConfig, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
-use crate::{Latents, Result};
+use crate::{Generator, Latents, Result};
 use tch::Tensor;
 
 /// A batch of generated images: what drives it and how it is seen.
@@ -34,14 +34,31 @@ pub fn generator_pass(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
-    let d = disc.judge(&img, at.alpha)?;
-    let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, reg_rays);
-    let reg = renderer.generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
-    generator_loss(&d, &img, &fake.poses.stacked(), fake.z, reg, at, cfg)
+    generator_judgement(renderer.generator, disc, &img, &parts, fake, reg_rays, at, cfg)
 }
 
-/// The discriminator's loss: fakes rendered without gradients, D on the reals (made to
-/// require grad when R1 is due, unless they already do) and on the fakes.
+/// The generator's loss on images already rendered with their graph (`img: (B, 3, S, S)`
+/// and the rays `parts` it was composited from, drawn from `fake`): `disc`'s verdict, the
+/// image terms and the regularisers through `generator`.
+#[allow(clippy::too_many_arguments)]
+pub fn generator_judgement(
+    generator: &Generator,
+    disc: &dyn Judge,
+    img: &Tensor,
+    parts: &[RenderedRays],
+    fake: &FakeBatch,
+    reg_rays: Option<&Tensor>,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
+    let d = disc.judge(img, at.alpha)?;
+    let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
+    let reg = generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
+    generator_loss(&d, img, &fake.poses.stacked(), fake.z, reg, at, cfg)
+}
+
+/// The discriminator's loss: fakes rendered without gradients, then
+/// [`discriminator_judgement`].
 pub fn discriminator_pass(
     renderer: &Renderer,
     disc: &dyn Judge,
@@ -54,9 +71,26 @@ pub fn discriminator_pass(
     let fakes =
         tch::no_grad(|| renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise))?
             .0;
+    discriminator_judgement(disc, real, real_poses, &fakes, fake.poses, fake.z, at, cfg)
+}
+
+/// The discriminator's loss on rendered `fakes: (B, 3, S, S)` seen from `fake_poses`
+/// (detached here: no gradient reaches the generator): D on the reals (made to require
+/// grad when R1 is due, unless they already do) and on the fakes.
+#[allow(clippy::too_many_arguments)]
+pub fn discriminator_judgement(
+    disc: &dyn Judge,
+    real: &Tensor,
+    real_poses: Option<&Tensor>,
+    fakes: &Tensor,
+    fake_poses: &Poses,
+    z: Option<&Tensor>,
+    at: Schedule,
+    cfg: &LossConfig,
+) -> Result<Losses> {
     let real =
         if real.requires_grad() { real.shallow_clone() } else { real.detach().set_requires_grad(cfg.r1_due(at.step)) };
     let dr = disc.judge(&real, at.alpha)?;
-    let df = disc.judge(&fakes, at.alpha)?;
-    discriminator_loss(&dr, &real, real_poses, &df, &fake.poses.stacked(), fake.z, at, cfg)
+    let df = disc.judge(&fakes.detach(), at.alpha)?;
+    discriminator_loss(&dr, &real, real_poses, &df, &fake_poses.stacked(), z, at, cfg)
 }

@@ -8,6 +8,7 @@
 //! RUN_DIR/metrics.jsonl                  one JSON object per logged step or event
 //! RUN_DIR/samples/step-NNNNNNNN-{samples,swap,template}.png and latest-*.png
 //! RUN_DIR/.lock                          held by the process training in RUN_DIR
+//! RUN_DIR/curve.jsonl, curve.png, filmstrip.png, evals/   the learning curve ([`super::curve`])
 //! ```
 use crate::{Error, Result};
 use std::io::Write;
@@ -112,34 +113,47 @@ pub fn prune_checkpoints(run_dir: &Path, keep: usize) -> Result<()> {
 
 /// Appends one JSON line to metrics.jsonl (a whole line per write, flushed).
 pub fn append_metrics(run_dir: &Path, line: &serde_json::Value) -> Result<()> {
-    let path = run_dir.join(METRICS);
-    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
+    append_jsonl(&run_dir.join(METRICS), line)
+}
+
+/// Appends one JSON line to the file at `path` (a whole line per write, flushed).
+pub fn append_jsonl(path: &Path, line: &serde_json::Value) -> Result<()> {
+    let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
     let mut text = serde_json::to_string(line).map_err(|e| Error::Invalid(e.to_string()))?;
     text.push('\n');
-    f.write_all(text.as_bytes()).map_err(io(&path))?;
-    f.flush().map_err(io(&path))
+    f.write_all(text.as_bytes()).map_err(io(path))?;
+    f.flush().map_err(io(path))
 }
 
 /// Reads metrics.jsonl; a torn last line (a crash mid-write) is ignored.
 pub fn read_metrics(run_dir: &Path) -> Result<Vec<serde_json::Value>> {
-    let path = run_dir.join(METRICS);
-    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    read_jsonl(&run_dir.join(METRICS))
+}
+
+/// Reads a file of JSON lines; a torn last line (a crash mid-write) is ignored.
+pub fn read_jsonl(path: &Path) -> Result<Vec<serde_json::Value>> {
+    let text = std::fs::read_to_string(path).map_err(io(path))?;
     Ok(text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect())
 }
 
 /// Keeps only the metrics of steps before `step` (and events before it), so a resumed
 /// run does not log the replayed steps twice. Rewritten atomically.
 pub fn truncate_metrics(run_dir: &Path, step: i64) -> Result<()> {
-    let path = run_dir.join(METRICS);
+    truncate_jsonl(&run_dir.join(METRICS), |s| s < step)
+}
+
+/// Keeps the lines of a JSON-lines file whose `step` passes `keep` (none, if the file is
+/// missing). Rewritten atomically.
+pub fn truncate_jsonl(path: &Path, keep: impl Fn(i64) -> bool) -> Result<()> {
     if !path.exists() {
         return Ok(());
     }
-    let kept: Vec<String> = read_metrics(run_dir)?
+    let kept: Vec<String> = read_jsonl(path)?
         .into_iter()
-        .filter(|v| v["step"].as_i64().is_some_and(|s| s < step))
+        .filter(|v| v["step"].as_i64().is_some_and(&keep))
         .map(|v| v.to_string() + "\n")
         .collect();
-    crate::checkpoint::write_atomic(&path, kept.concat().as_bytes())
+    crate::checkpoint::write_atomic(path, kept.concat().as_bytes())
 }
 
 #[cfg(test)]
