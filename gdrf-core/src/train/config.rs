@@ -325,6 +325,34 @@ impl TrainConfig {
         })
     }
 
+    /// The config as a run stores it (its config.toml, every checkpoint): paths inside the
+    /// repository ([`crate::bench::repo_root`]) relative to it, so that the stored run names no
+    /// machine's folder and a copy of it resumes in another clone. Paths elsewhere stay
+    /// absolute. [`TrainConfig::from_store`] undoes it.
+    pub fn to_store(&self) -> Self {
+        let root = crate::bench::repo_root();
+        let rel = |p: &Path| p.strip_prefix(&root).map(Path::to_path_buf).unwrap_or_else(|_| p.to_path_buf());
+        self.map_paths(&rel)
+    }
+
+    /// A stored config ([`TrainConfig::to_store`]) with its relative paths resolved against
+    /// the repository root. Absolute paths (older runs, folders outside the repository) are
+    /// kept.
+    pub fn from_store(&self) -> Self {
+        let root = crate::bench::repo_root();
+        self.map_paths(&|p: &Path| if p.is_relative() { root.join(p) } else { p.to_path_buf() })
+    }
+
+    fn map_paths(&self, f: &dyn Fn(&Path) -> std::path::PathBuf) -> Self {
+        let mut c = self.clone();
+        c.data.path = f(&c.data.path);
+        c.data.poses = c.data.poses.as_deref().map(f);
+        c.data.cache_dir = c.data.cache_dir.as_deref().map(f);
+        c.eval.probe = c.eval.probe.as_deref().map(f);
+        c.init_generator = c.init_generator.as_deref().map(f);
+        c
+    }
+
     /// The resolved config as TOML (every default written out).
     pub fn to_toml(&self) -> Result<String> {
         toml::to_string_pretty(self).map_err(|e| cfg_err(format!("cannot write the config as TOML: {e}")))
@@ -604,6 +632,23 @@ path = "data/x"
         // The resolved config round-trips through TOML.
         let back = TrainConfig::from_toml(&c.to_toml().unwrap(), Path::new("")).unwrap();
         assert_eq!(back, c);
+    }
+
+    #[test]
+    fn a_stored_config_names_repository_paths_relative_to_it() {
+        let root = crate::bench::repo_root();
+        let cfg = TrainConfig::load(&root.join("configs/chairs-campaign.toml")).unwrap();
+        assert_eq!(cfg.data.path, root.join("data/chairs-64"));
+        let stored = cfg.to_store();
+        assert_eq!(stored.data.path, Path::new("data/chairs-64"));
+        assert_eq!(stored.eval.probe.as_deref(), Some(Path::new("models/chairs-probe/probe.safetensors")));
+        assert!(!stored.to_toml().unwrap().contains(&*root.to_string_lossy()));
+        assert_eq!(stored.from_store(), cfg);
+        // A folder outside the repository, and an older run's absolute path, stay as they are.
+        let mut outside = cfg.clone();
+        outside.data.path = "/elsewhere/chairs".into();
+        assert_eq!(outside.to_store().data.path, Path::new("/elsewhere/chairs"));
+        assert_eq!(cfg.from_store(), cfg);
     }
 
     #[test]

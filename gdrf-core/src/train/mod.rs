@@ -269,7 +269,7 @@ impl Trainer {
         t.cfg = cfg;
         t.datasets.clear();
         t.permutation = None;
-        checkpoint::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_toml()?.as_bytes())?;
+        checkpoint::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_store().to_toml()?.as_bytes())?;
         Ok(t)
     }
 
@@ -282,7 +282,7 @@ impl Trainer {
         let th: TrainingHeader =
             serde_json::from_value(ckpt.header.training.clone().ok_or_else(|| bad("no training header".into()))?)
                 .map_err(|e| bad(format!("bad training header: {e}")))?;
-        let mut cfg = th.config;
+        let mut cfg = th.config.from_store();
         if let Some(d) = device {
             cfg.device = d.to_string();
         }
@@ -919,7 +919,8 @@ impl Trainer {
             ema_updates: self.ema.updates,
             ..self.progress.clone()
         };
-        let th = TrainingHeader { progress, stage: self.cfg.stage_index(self.progress.step), config: self.cfg.clone() };
+        let th =
+            TrainingHeader { progress, stage: self.cfg.stage_index(self.progress.step), config: self.cfg.to_store() };
         header.training = Some(serde_json::to_value(&th).map_err(|e| Error::Invalid(e.to_string()))?);
         checkpoint::save(&path, &self.state_tensors(), &header)?;
         self.export_generator(&self.run_dir.join(run::GENERATOR))?;
@@ -1038,7 +1039,7 @@ impl Trainer {
         std::fs::create_dir_all(&self.run_dir).map_err(|source| Error::Io { path: self.run_dir.clone(), source })?;
         if run::list_checkpoints(&self.run_dir)?.is_empty() {
             run::truncate_metrics(&self.run_dir, self.progress.step)?;
-            checkpoint::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_toml()?.as_bytes())?;
+            checkpoint::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_store().to_toml()?.as_bytes())?;
             self.save_checkpoint()?;
             if self.cfg.schedule.sample_interval > 0 {
                 samples::write_previews(self)?;

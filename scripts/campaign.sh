@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# The training campaign (docs/training.md, "The campaign"): one long run of
+# configs/chairs-campaign.toml in the background, resumed every session.
+#
+#   scripts/campaign.sh resume   [RUN_DIR]   continue it in the background at low priority
+#                                            (a fresh clone first copies models/chairs-campaign)
+#   scripts/campaign.sh stop     [RUN_DIR]   stop it with a checkpoint (SIGINT), and wait
+#   scripts/campaign.sh status   [RUN_DIR]   step, last log line, the curve's last evaluation
+#   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign,
+#                                            overwriting the previous copy (then commit it)
+#
+# RUN_DIR defaults to ../campaign/chairs, outside the checkout. The run records paths
+# relative to the repository root, so everything runs from there. The binary runs from a
+# copy beside the run directory, so that rebuilding the workspace never touches it.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+cmd="${1:-}"
+run="${2:-../campaign/chairs}"
+shipped=models/chairs-campaign
+bin="$(dirname "$run")/bin/gdrf-train"
+log="$(dirname "$run")/train.log"
+
+die() { printf 'campaign: error: %s\n' "$*" >&2; exit 1; }
+running() { pgrep -f -- "gdrf-train --resume $run( |\$)" || true; }
+
+case "$cmd" in
+  resume)
+    [ -z "$(running)" ] || die "already running in $run (pid $(running))"
+    if [ ! -d "$run" ]; then
+      [ -d "$shipped/checkpoints" ] || die "$run does not exist and $shipped holds no state to start from"
+      mkdir -p "$(dirname "$run")"
+      cp -r "$shipped" "$run"
+      echo "campaign: copied $shipped to $run"
+    fi
+    scripts/setup.sh
+    cargo build --release --quiet -p gdrf-train
+    mkdir -p "$(dirname "$bin")"
+    cp target/release/gdrf-train "$bin.tmp" && mv -f "$bin.tmp" "$bin"
+    nohup nice -n 19 "$bin" --resume "$run" --quiet >>"$log" 2>&1 &
+    echo "campaign: resumed $run in the background (pid $!), log $log"
+    ;;
+  stop)
+    pid="$(running)"
+    [ -n "$pid" ] || die "not running in $run"
+    kill -INT $pid
+    while kill -0 $pid 2>/dev/null; do sleep 1; done
+    tail -n 3 "$log"
+    ;;
+  status)
+    [ -d "$run" ] || die "$run does not exist"
+    pid="$(running)"
+    state="stopped"
+    [ -z "$pid" ] || state="running (pid $pid)"
+    echo "campaign: $state; newest checkpoint $(ls "$run/checkpoints" | tail -n 1)"
+    [ -f "$log" ] && grep '^step' "$log" | tail -n 1
+    if [ -f "$run/curve.jsonl" ]; then
+      tail -n 1 "$run/curve.jsonl" | "${GDRF_PYTHON:-python3}" -c '
+import json, sys
+l = json.loads(sys.stdin.read())
+pos = {s["score"]: s["mean"]["position"] for s in l["scores"]["scores"]}
+print("last evaluation: step", l["step"], "images", l["images_seen"], "positions",
+      {k: (round(v, 3) if v is not None else None) for k, v in pos.items()})'
+    fi
+    ;;
+  snapshot)
+    [ -d "$run/checkpoints" ] || die "$run holds no checkpoints"
+    newest="$(ls "$run/checkpoints" | tail -n 1)"
+    [ -n "$newest" ] || die "$run holds no checkpoints"
+    stage="$shipped.tmp.$$"
+    rm -rf "$stage"
+    mkdir -p "$stage/checkpoints"
+    cp "$run/checkpoints/$newest" "$stage/checkpoints/"
+    for f in config.toml metrics.jsonl curve.jsonl curve.png filmstrip.png generator.safetensors; do
+      [ -f "$run/$f" ] && cp "$run/$f" "$stage/"
+    done
+    [ -f "$shipped/README.md" ] && cp "$shipped/README.md" "$stage/"
+    rm -rf "$shipped.old"
+    [ -d "$shipped" ] && mv "$shipped" "$shipped.old"
+    mv "$stage" "$shipped"
+    rm -rf "$shipped.old"
+    echo "campaign: $shipped now holds $newest; commit it (git add -A $shipped)"
+    ;;
+  *)
+    sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    [ -z "$cmd" ] || exit 2
+    ;;
+esac
