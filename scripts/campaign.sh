@@ -3,11 +3,13 @@
 # configs/chairs-campaign.toml in the background, resumed every session.
 #
 #   scripts/campaign.sh resume   [RUN_DIR]   continue it in the background at low priority
-#                                            (a fresh clone first copies models/chairs-campaign)
+#                                            (a fresh clone first copies models/chairs-campaign/run)
 #   scripts/campaign.sh stop     [RUN_DIR]   stop it with a checkpoint (SIGINT), and wait
 #   scripts/campaign.sh status   [RUN_DIR]   step, last log line, the curve's last evaluation
-#   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign,
+#   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign/run,
 #                                            overwriting the previous copy (then commit it)
+#   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
+#                                            into models/chairs-campaign (gdrf-train ship)
 #
 # RUN_DIR defaults to ../campaign/chairs, outside the checkout. The run records paths
 # relative to the repository root, so everything runs from there. The binary runs from a
@@ -17,7 +19,8 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 cmd="${1:-}"
 run="${2:-../campaign/chairs}"
-shipped=models/chairs-campaign
+model=models/chairs-campaign
+shipped=$model/run
 bin="$(dirname "$run")/bin/gdrf-train"
 log="$(dirname "$run")/train.log"
 
@@ -71,18 +74,21 @@ print("last evaluation: step", l["step"], "images", l["images_seen"], "positions
     rm -rf "$stage"
     mkdir -p "$stage/checkpoints"
     cp "$run/checkpoints/$newest" "$stage/checkpoints/"
-    for f in config.toml metrics.jsonl curve.jsonl curve.png filmstrip.png generator.safetensors; do
-      [ -f "$run/$f" ] && cp "$run/$f" "$stage/"
+    for f in config.toml metrics.jsonl curve.jsonl curve.png filmstrip.png; do
+      if [ -f "$run/$f" ]; then cp "$run/$f" "$stage/"; fi
     done
-    [ -f "$shipped/README.md" ] && cp "$shipped/README.md" "$stage/"
     rm -rf "$shipped.old"
-    [ -d "$shipped" ] && mv "$shipped" "$shipped.old"
+    if [ -d "$shipped" ]; then mv "$shipped" "$shipped.old"; fi
     mv "$stage" "$shipped"
     rm -rf "$shipped.old"
     echo "campaign: $shipped now holds $newest; commit it (git add -A $shipped)"
     ;;
+  ship)
+    cargo build --release --quiet -p gdrf-train
+    target/release/gdrf-train ship "$run" --out "$model"
+    ;;
   *)
-    sed -n '2,14p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     [ -z "$cmd" ] || exit 2
     ;;
 esac

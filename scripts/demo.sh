@@ -5,8 +5,8 @@
 #      checkpoints, metrics, preview grids and loss curves in out/demo-run/; continue it
 #      with `target/debug/gdrf-train --resume out/demo-run`),
 #   3. samples on a turntable and a shape/appearance swap matrix from the model shipped
-#      in models/chairs-tiny-blend/ (two runs of the same config, hours on a 2-core CPU,
-#      blended in weight space; trained at 32², shown at 64²),
+#      in models/chairs-campaign/ (the training campaign's checkpoint its learning curve
+#      ranks best, hours on a 2-core CPU; trained at 32², shown at 64²),
 #   4. editing with it: a swap matrix with kept shape sides, an orbit GIF of one shape with
 #      another's appearance, an appearance interpolation and a mesh with correspondence
 #      colours,
@@ -28,7 +28,7 @@ invert=target/debug/gdrf-invert
 "$train" --config configs/chairs-tiny.toml --run-dir out/demo-run --force --minutes "${DEMO_MINUTES:-3}"
 "$train" plot out/demo-run
 
-model=models/chairs-tiny-blend/generator.safetensors
+model=models/chairs-campaign/generator.safetensors
 # Rows: seeds 0–5; columns: 4 views around the object.
 "$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --steps 12 \
   --no-jitter --out out/samples.png

@@ -328,6 +328,24 @@ fn probe_learns_and_eval_is_calibrated() {
     assert_eq!(plot.dimensions(), (1040, 658));
     let strip = image::open(run.join("filmstrip.png")).unwrap().to_rgb8();
     assert_eq!(strip.dimensions(), (96 + 4 * 16 + 8 + 3 * 16 + 6, 2 * (3 * 16 + 6) + 6));
+    // `gdrf-train ship` copies the evaluation the rule ranks best, byte for byte.
+    let lowest = |l: &serde_json::Value| {
+        l["scores"]["scores"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| gdrf_core::train::curve::RULE_SCORES.contains(&s["score"].as_str().unwrap()))
+            .filter_map(|s| s["mean"]["position"].as_f64())
+            .fold(f64::INFINITY, f64::min)
+    };
+    let want = if lowest(&lines[0]) > lowest(&lines[1]) { 2 } else { 4 };
+    let shipped = tmp.path("shipped");
+    let said = gdrf_train(&["ship", run.to_str().unwrap(), "--out", shipped.to_str().unwrap()]);
+    assert!(said.starts_with(&format!("step {want} of 2 evaluations")), "{said}");
+    for f in ["generator.safetensors", "seeds.json"] {
+        let made = std::fs::read(shipped.join(f)).unwrap();
+        assert_eq!(made, std::fs::read(run.join(format!("evals/step-{want:08}/{f}"))).unwrap(), "{f}");
+    }
     // Resumed from the step-2 checkpoint, the run drops the later evaluation and makes it
     // again, identically.
     std::fs::remove_file(run.join("checkpoints/step-00000004.safetensors")).unwrap();

@@ -279,7 +279,7 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
         serde_json::from_str(&std::fs::read_to_string(stem.with_extension("json")).unwrap()).unwrap();
     // The shipped defaults, found from the test's working folder (not the repository's) and
     // written relative to the repository: no machine's folder in the committed figures.
-    assert_eq!(json["generator"], "models/chairs-tiny-blend/generator.safetensors");
+    assert_eq!(json["generator"], "models/chairs-campaign/generator.safetensors");
     assert_eq!(json["probe"], "models/chairs-probe/probe.safetensors");
     let points = json["points"].as_array().unwrap();
     let mut methods: Vec<&str> = points.iter().map(|p| p["method"].as_str().unwrap()).collect();

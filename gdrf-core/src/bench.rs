@@ -35,10 +35,10 @@ pub fn repo_root() -> PathBuf {
     }
 }
 
-/// The shipped generator (models/chairs-tiny-blend, the best scored), the default of the
-/// commands that need one.
+/// The shipped generator (models/chairs-campaign: the campaign's checkpoint its learning
+/// curve ranks best), the default of the commands that need one.
 pub fn shipped_generator() -> PathBuf {
-    repo_root().join("models/chairs-tiny-blend/generator.safetensors")
+    repo_root().join("models/chairs-campaign/generator.safetensors")
 }
 
 /// `path` as written into committed figures: relative to the repository when it lies in it

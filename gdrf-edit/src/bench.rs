@@ -21,7 +21,7 @@ use tch::{Device, Kind, Tensor};
 #[derive(Args)]
 pub struct BenchArgs {
     /// Generator checkpoint benchmarked beside the analytic scene; default: the shipped
-    /// models/chairs-tiny-blend. --generator is the same.
+    /// models/chairs-campaign. --generator is the same.
     #[arg(long, visible_alias = "generator", value_name = "FILE")]
     checkpoint: Option<PathBuf>,
     /// Image sizes (square).

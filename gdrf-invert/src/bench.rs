@@ -21,7 +21,7 @@ use tch::{Device, Kind, Tensor};
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Generator checkpoint; default: the shipped models/chairs-tiny-blend.
+    /// Generator checkpoint; default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     generator: Option<PathBuf>,
     /// The initialiser (from train-init); without it only the mean-code start is measured.

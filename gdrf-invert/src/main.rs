@@ -54,7 +54,7 @@ enum Command {
 
 #[derive(clap::Args)]
 struct TrainInitArgs {
-    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-tiny-blend.
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     generator: Option<PathBuf>,
     /// The initialiser file to write.
@@ -103,7 +103,7 @@ struct InvertArgs {
     /// with --fit pad), RGBA composited on white.
     #[arg(required = true)]
     photo: Option<PathBuf>,
-    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-tiny-blend.
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     generator: Option<PathBuf>,
     /// The initialiser (from `gdrf-invert train-init`): w_s starts at its prediction, and

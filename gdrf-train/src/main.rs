@@ -49,6 +49,22 @@ enum Command {
     /// its end), where points between can keep what each end does better; score them with
     /// `gdrf-train eval`. Training checkpoints give their EMA generator.
     Interpolate(InterpolateArgs),
+    /// Copy the generator a run's learning curve ranks best into a model folder: the
+    /// evaluation whose lowest seed-mean position over the calibrated scores (Fréchet and
+    /// kernel distance, coverage, structure, yaw, pitch) is highest, ties to the later step
+    /// (docs/training.md, "The campaign"). Writes DIR/generator.safetensors and
+    /// DIR/seeds.json, that evaluation's scores.
+    Ship(ShipArgs),
+}
+
+#[derive(Args)]
+struct ShipArgs {
+    /// A run directory whose config has `[eval] interval` (its curve.jsonl and evals/).
+    run_dir: PathBuf,
+    /// The model folder (created when missing; its generator.safetensors and seeds.json are
+    /// replaced atomically).
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -214,6 +230,7 @@ fn main() {
         Some(Command::Plot(a)) => plot_cmd::plot(a),
         Some(Command::Eval(a)) => eval_cmd::eval(*a),
         Some(Command::Interpolate(a)) => interpolate_cmd(a),
+        Some(Command::Ship(a)) => ship_cmd(a),
         None if cli.train.any() => train_cmd::train(cli.train),
         None => Err(anyhow::anyhow!(
             "nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"
@@ -233,6 +250,33 @@ fn parse_group_weight(s: &str) -> std::result::Result<(String, f64), String> {
         return Err("expected a parameter-name prefix before '='".into());
     }
     Ok((prefix.to_string(), t))
+}
+
+fn ship_cmd(a: ShipArgs) -> Result<()> {
+    use gdrf_core::train::curve;
+    let lines = curve::read(&a.run_dir)?;
+    let Some(best) = curve::best(&lines) else {
+        bail!(
+            "{}: no evaluation with a calibrated score on its curve (curve.jsonl; see [eval] interval)",
+            a.run_dir.display()
+        )
+    };
+    let dir = curve::eval_dir(&a.run_dir, best.step);
+    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
+    for name in ["generator.safetensors", "seeds.json"] {
+        let from = dir.join(name);
+        let bytes = std::fs::read(&from).with_context(|| format!("reading {}", from.display()))?;
+        gdrf_core::checkpoint::write_atomic(&a.out.join(name), &bytes)?;
+    }
+    println!(
+        "step {} of {} evaluations: lowest position {:.3} ({}) -> {}",
+        best.step,
+        lines.len(),
+        best.lowest,
+        best.score,
+        a.out.join("generator.safetensors").display()
+    );
+    Ok(())
 }
 
 fn interpolate_cmd(a: InterpolateArgs) -> Result<()> {

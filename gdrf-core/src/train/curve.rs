@@ -92,6 +92,47 @@ const SCORES: &[(&str, &str)] = &[
     ("pose pitch error deg", "pitch"),
 ];
 
+/// The scores the shipping rule counts: the calibrated ones. The colour test is compared
+/// with the real end instead (its random end often scores above the real one at 32²).
+pub const RULE_SCORES: &[&str] = &[
+    "frechet distance",
+    "kernel distance",
+    "coverage tv",
+    "shape follows i",
+    "pose yaw error deg",
+    "pose pitch error deg",
+];
+
+/// One evaluation as the shipping rule sees it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RulePoint {
+    pub step: i64,
+    /// The lowest seed-mean position over [`RULE_SCORES`] (scores without a position skipped).
+    pub lowest: f64,
+    /// The score that holds it.
+    pub score: String,
+}
+
+/// The shipping rule, fixed before the campaign's first evaluation (docs/training.md): the
+/// evaluation whose lowest seed-mean position over [`RULE_SCORES`] is highest, ties to the
+/// later step. `None` for a curve without a counted score.
+pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
+    lines
+        .iter()
+        .filter_map(|l| {
+            let step = l["step"].as_i64()?;
+            let (score, lowest) = l["scores"]["scores"]
+                .as_array()?
+                .iter()
+                .filter(|s| s["score"].as_str().is_some_and(|n| RULE_SCORES.contains(&n)))
+                .filter_map(|s| Some((s["score"].as_str()?.to_string(), s["mean"]["position"].as_f64()?)))
+                .filter(|(_, p)| p.is_finite())
+                .min_by(|a, b| a.1.total_cmp(&b.1))?;
+            Some(RulePoint { step, lowest, score })
+        })
+        .max_by(|a, b| a.lowest.total_cmp(&b.lowest).then(a.step.cmp(&b.step)))
+}
+
 /// What the goal asks of every position (docs/training.md, "The campaign").
 pub const GOAL_POSITION: f64 = 0.75;
 
@@ -235,4 +276,42 @@ pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
     let path = run_dir.join(FILMSTRIP);
     io::save_png(&path, &out)?;
     Ok(Some(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn line(step: i64, positions: &[(&str, Option<f64>)]) -> serde_json::Value {
+        let scores: Vec<_> =
+            positions.iter().map(|(name, p)| json!({"score": name, "mean": {"position": p}})).collect();
+        json!({"step": step, "scores": {"scores": scores}})
+    }
+
+    #[test]
+    fn the_shipping_rule_takes_the_best_lowest_position_and_the_later_tie() {
+        let lines = [
+            line(
+                5000,
+                &[("frechet distance", Some(0.58)), ("pose yaw error deg", Some(0.23)), ("shape follows i", None)],
+            ),
+            // The colour test is not counted, and a missing position is skipped.
+            line(
+                10000,
+                &[("frechet distance", Some(0.69)), ("coverage tv", Some(0.62)), ("appearance follows j", Some(-3.0))],
+            ),
+            line(15000, &[("frechet distance", Some(0.9)), ("kernel distance", Some(0.62))]),
+            line(20000, &[("pose pitch error deg", Some(0.4)), ("pose yaw error deg", Some(1.2))]),
+        ];
+        let b = best(&lines).unwrap();
+        assert_eq!(b, RulePoint { step: 15000, lowest: 0.62, score: "kernel distance".into() });
+        assert_eq!(best(&lines[..2]).unwrap().step, 10000);
+        assert_eq!(
+            best(&lines[..1]).unwrap(),
+            RulePoint { step: 5000, lowest: 0.23, score: "pose yaw error deg".into() }
+        );
+        assert_eq!(best(&[line(5, &[("appearance follows j", Some(1.0))])]), None);
+        assert_eq!(best(&[]), None);
+    }
 }

@@ -1124,14 +1124,16 @@ impl Trainer {
             self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
         }
         let header = self.header("generator");
-        let name = self.run_dir.join(run::GENERATOR).display().to_string();
+        // As committed records show them: relative to the repository where inside it.
+        let name = crate::bench::shown(&self.run_dir.join(run::GENERATOR));
+        let dataset = PathBuf::from(crate::bench::shown(&self.cfg.data.path));
         let ev = self.evaluator.as_mut().expect("built above");
         let mut results = Vec::with_capacity(seeds.len());
         let mut seed_start = start;
         for &seed in &seeds {
             ev.reseed(seed)?;
             let what = format!(" (seed {seed})");
-            let names = (name.clone(), self.cfg.data.path.as_path());
+            let names = (name.clone(), dataset.as_path());
             results.push(score_generator(
                 ev,
                 &self.ema_generator,
