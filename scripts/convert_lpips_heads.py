@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Convert the calibrated LPIPS v0.1 heads that ship inside the `lpips` wheel into
-safetensors files for gdrf's Rust LPIPS (gdrf_core::eval::lpips).
+safetensors files for gdrf's Rust LPIPS (gdrf_core::pretrained::lpips).
 
     scripts/convert_lpips_heads.py OUTDIR
 

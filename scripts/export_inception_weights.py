@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Write the weights of FID's Inception-v3 as safetensors for gdrf's Rust extractor
-(gdrf_core::eval::inception::InceptionV3).
+(gdrf_core::pretrained::inception::InceptionV3).
 
     scripts/export_inception_weights.py OUT.safetensors
     scripts/export_inception_weights.py OUT.safetensors --from-pth pt_inception-2015-12-05-6726825d.pth

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Export the ImageNet backbone of LPIPS (torchvision's pretrained VGG16 or AlexNet) as a
-safetensors file for gdrf's Rust LPIPS (gdrf_core::eval::lpips).
+safetensors file for gdrf's Rust LPIPS (gdrf_core::pretrained::lpips).
 
     scripts/export_lpips_backbone.py --net vgg|alex OUT.safetensors [--from-pth FILE]
 

@@ -8,7 +8,7 @@ use common::{read_tensors, rel_err, run_python, Report, TempDir};
 use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::disc::Discriminator;
-use gdrf_core::loss::deform_reg::{select_samples, RegConfig, RegVariant};
+use gdrf_core::loss::deform_reg::{regularisers, select_samples, RegConfig, RegVariant};
 use gdrf_core::loss::{LossConfig, Losses, Schedule};
 use gdrf_core::render::{Noise, RenderedRays, Renderer};
 use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
@@ -116,7 +116,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let (_, parts) = renderer.render_regions(&latents, &poses, res, regions, &noise).unwrap();
     let paper = RegConfig { variant: RegVariant::Paper, ..Default::default() };
     let samples = select_samples(&RenderedRays::concat(&parts), &paper, None);
-    let reg = g.generator.regularisers(&latents.shape, &samples, RegVariant::Paper);
+    let reg = regularisers(&g.generator, &latents.shape, &samples, RegVariant::Paper);
     for (name, v) in [
         ("correction", &reg.correction),
         ("smoothness", &reg.smoothness),

@@ -12,8 +12,8 @@ use gdrf_core::data::synth::material::{Appearance, PARTS};
 use gdrf_core::data::synth::render::{fit_radius, render, Geometry, RenderOptions, Rendered, Scene};
 use gdrf_core::data::synth::rng::{Rng, Stream};
 use gdrf_core::data::synth::sdf::{v3, Prim, Rot, Shape, V3};
-use gdrf_core::data::synth::{self, Category, Metadata, ShapeParams, Split, SynthOptions};
-use gdrf_core::data::{self, DataConfig, LoadOptions, Prepared};
+use gdrf_core::data::synth::{self, Category, ShapeParams, SynthOptions};
+use gdrf_core::data::{self, DataConfig, LoadOptions, Metadata, Prepared, Split};
 use std::path::Path;
 use tch::{Device, Kind, Tensor};
 
@@ -42,7 +42,7 @@ fn same_seed_gives_byte_identical_datasets_for_any_thread_count() {
         synth::generate(&a, &opts, 1, &|| {}).unwrap();
         synth::generate(&b, &opts, 3, &|| {}).unwrap();
         assert_eq!(files(&a), files(&b), "{category:?}: images differ between 1 and 3 threads");
-        for f in [synth::METADATA_FILE, "camera_param.json"] {
+        for f in [data::METADATA_FILE, "camera_param.json"] {
             assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}");
         }
         synth::generate(&c, &SynthOptions { seed: 6, ..opts }, 2, &|| {}).unwrap();

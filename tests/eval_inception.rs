@@ -5,8 +5,8 @@
 mod common;
 
 use common::{assert_close, read_tensors, run_python, TempDir};
-use gdrf_core::eval::inception::{InceptionV3, FEATURE_DIM};
-use gdrf_core::eval::weights::Weights;
+use gdrf_core::pretrained::inception::{InceptionV3, FEATURE_DIM};
+use gdrf_core::pretrained::weights::Weights;
 use gdrf_core::Error;
 use std::path::Path;
 use tch::{Device, Kind, Tensor};

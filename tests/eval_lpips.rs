@@ -6,7 +6,7 @@
 mod common;
 
 use common::{assert_close, read_tensors, run_python, TempDir};
-use gdrf_core::eval::lpips::{Lpips, LpipsNet};
+use gdrf_core::pretrained::lpips::{Lpips, LpipsNet};
 use std::time::Instant;
 use tch::{Device, Kind, Tensor};
 

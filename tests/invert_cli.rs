@@ -97,7 +97,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
         serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
     assert_eq!(report["steps_run"], 3);
     assert!(report["perceptual"].as_str().unwrap().contains("not LPIPS"));
-    let m = load_generator(&gdrf_core::bench::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
+    let m = load_generator(&gdrf_core::paths::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
     let f =
         Features::load(&out.join("features.safetensors"), &m.generator, &generator_id(&m.vs, &m.generator)).unwrap();
     let p = f.pose.unwrap();
@@ -189,7 +189,7 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
     ok(&as_args(&small("6", &["--resume"])));
 
     // Another generator (one weight changed) refuses this initialiser, naming both.
-    let mut m = load_generator(&gdrf_core::bench::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
+    let mut m = load_generator(&gdrf_core::paths::shipped_generator(), Device::Cpu, Kind::Float).unwrap();
     tch::no_grad(|| {
         let mut w = m.vs.variables()["deform.head.bias"].shallow_clone();
         let _ = w.g_add_scalar_(0.01);

@@ -1,7 +1,8 @@
 //! What the benchmark commands share: medians, the process's peak memory, and running a
 //! PyTorch reference script (`scripts/reference/`) with the project's Python.
+use crate::paths::{python, repo_root};
 use crate::{Error, Result};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 
 /// Median of `v` (NaN for an empty slice).
@@ -23,33 +24,6 @@ pub fn peak_rss_mb() -> f64 {
         .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
         .map(|kb| kb / 1024.0)
         .unwrap_or(f64::NAN)
-}
-
-/// The project's folder (its scripts, weights, shipped models and virtual environment):
-/// `$GDRF_ROOT` when set (binaries copied to another machine or folder), else the
-/// repository the binaries were built in.
-pub fn repo_root() -> PathBuf {
-    match std::env::var_os("GDRF_ROOT") {
-        Some(p) => p.into(),
-        None => Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_default(),
-    }
-}
-
-/// The shipped generator (models/chairs-campaign: the campaign's checkpoint its learning
-/// curve ranks best), the default of the commands that need one.
-pub fn shipped_generator() -> PathBuf {
-    repo_root().join("models/chairs-campaign/generator.safetensors")
-}
-
-/// `path` as written into committed figures: relative to the repository when it lies in it
-/// (a shipped model), so that no machine's folder appears in them.
-pub fn shown(path: &Path) -> String {
-    path.strip_prefix(repo_root()).unwrap_or(path).display().to_string()
-}
-
-/// `$GDRF_PYTHON`, else the project's `.venv` (made by `scripts/setup.sh`).
-pub fn python() -> PathBuf {
-    std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo_root().join(".venv/bin/python"))
 }
 
 /// Runs `scripts/reference/<script>` with the project's Python and reads the JSON it

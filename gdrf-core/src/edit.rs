@@ -7,10 +7,11 @@
 //! **appearance** as the colour branch's modulation γ_a, β_a `(1, L_c·H)` each, optionally a
 //! pose, and the identity of the generator it was made with. It is a safetensors file with
 //! the JSON header under the metadata key `gdrf_features`.
-use crate::checkpoint::{load_tensors_with, tensors_to_bytes, write_atomic};
+use crate::checkpoint::{load_tensors_with, tensors_to_bytes};
 use crate::field::generator::{Generator, Truncation};
 use crate::nn::film::Film;
 use crate::nn::mapping::seeded_randn;
+use crate::paths::write_atomic;
 use crate::{Error, Latents, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

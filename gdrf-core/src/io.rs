@@ -1,5 +1,5 @@
-//! Image output: tensors to PNG files, written atomically.
-use crate::checkpoint::write_atomic;
+//! Image operations: tensors to PNG files (written atomically), grids, and resizing.
+use crate::paths::write_atomic;
 use crate::{Error, Result};
 use std::path::Path;
 use tch::{Kind, Tensor};
@@ -97,6 +97,19 @@ pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Resul
         }
     }
     write_atomic(path, &bytes)
+}
+
+/// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.
+pub fn resize(img: &Tensor, res: i64) -> Tensor {
+    let s = img.size();
+    if s[2] == res && s[3] == res {
+        return img.shallow_clone();
+    }
+    if s[2] > res {
+        img.internal_upsample_bilinear2d_aa([res, res], false, None, None)
+    } else {
+        img.upsample_bilinear2d([res, res], false, None, None)
+    }
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 //! into six tetrahedra along its main diagonal, so that neighbouring cubes cut their shared
 //! faces the same way and the surface is closed wherever the level set is), with vertices
 //! shared between triangles, and their PLY and OBJ files.
-use crate::checkpoint::write_atomic;
+use crate::paths::write_atomic;
 use crate::{Error, Result};
 use std::collections::HashMap;
 use std::fmt::Write as _;

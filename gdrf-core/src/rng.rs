@@ -5,10 +5,16 @@
 //!
 //! Element i of a draw is SplitMix64's output i for the draw's key: cheap (a few ns per
 //! number), stateless, and independent across keys.
-use crate::data::synth::rng::mix64;
 use tch::{Device, Kind, Tensor};
 
 const GOLDEN: u64 = 0x9e37_79b9_7f4a_7c15;
+
+/// SplitMix64's finaliser: a bijective 64-bit mix.
+pub fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
 
 /// Serialises every use of libtorch's global generator in this process.
 static GLOBAL_GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());

@@ -5,11 +5,12 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::bench::{median, peak_rss_mb, run_reference, run_script};
 use gdrf_core::camera::Poses;
-use gdrf_core::checkpoint::{load_generator, write_atomic};
+use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::field::RadianceField;
 use gdrf_core::nn::mapping::seeded_randn;
+use gdrf_core::paths::write_atomic;
 use gdrf_core::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
 use gdrf_core::{device, CameraConfig, Latents, RenderConfig};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -60,7 +61,7 @@ pub struct BenchArgs {
 impl BenchArgs {
     /// --checkpoint, else the shipped model (found from any working folder).
     fn checkpoint(&self) -> PathBuf {
-        self.checkpoint.clone().unwrap_or_else(gdrf_core::bench::shipped_generator)
+        self.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator)
     }
 }
 
@@ -249,7 +250,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     }
     let doc = json!({
         "title": "renderer: time against error",
-        "checkpoint": gdrf_core::bench::shown(&a.checkpoint()),
+        "checkpoint": gdrf_core::paths::shown(&a.checkpoint()),
         "device": format!("{dev:?}"),
         "threads": threads,
         "seeds": a.seeds,

@@ -1,5 +1,5 @@
 //! gdrf-edit: render a GDRF generator from any viewpoint, with shape and appearance
-//! taken from different codes.
+//! taken from different codes. `gdrf-edit --shape-from A --appearance-from B` is the swap.
 mod bench;
 mod mesh_cmd;
 mod swap;
@@ -17,11 +17,20 @@ use std::path::PathBuf;
 use std::time::Instant;
 use tch::{nn, Kind, Tensor};
 
+/// Render and edit GDRF generators: novel views, shape/appearance swaps.
+///
+/// Without a subcommand, `gdrf-edit --shape-from A --appearance-from B` renders the shape of
+/// A with the appearance of B (the `swap` subcommand): a source is seed:N, a feature file
+/// from gdrf-invert, or a photo (inverted on the fly). Every subcommand renders the shipped
+/// model (models/chairs-campaign) unless --checkpoint names another, at the resolution and
+/// samples per ray it learned at unless --resolution and --samples say otherwise.
 #[derive(Parser)]
-#[command(version, about = "Render and edit GDRF generators: novel views, shape/appearance swaps.")]
+#[command(version, about, long_about, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
+    #[command(flatten)]
+    swap: swap::SwapArgs,
 }
 
 #[derive(Subcommand)]
@@ -68,9 +77,10 @@ struct RenderArgs {
     /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
     #[arg(long, default_value_t = 1.0)]
     psi: f64,
-    /// Image size in pixels (square).
-    #[arg(long, default_value_t = 128)]
-    resolution: i64,
+    /// Image size in pixels (square). Default: where the model learned (the resolution its
+    /// checkpoint records), else 128.
+    #[arg(long)]
+    resolution: Option<i64>,
     /// Views per seed on a turntable (yaw spread evenly over 360° from --yaw).
     #[arg(long, default_value_t = 1)]
     views: usize,
@@ -80,10 +90,11 @@ struct RenderArgs {
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more). Authors' renders use 96.
-    /// `--samples` is the same flag, as in gdrf-invert, where `--steps` counts optimisation steps.
-    #[arg(long, visible_alias = "samples", default_value_t = 36)]
-    steps: usize,
+    /// Coarse samples per ray N (the importance pass adds N more). Default: where the model
+    /// learned, else 36; the authors' renders use 96. `--samples` is the same flag, as in
+    /// gdrf-invert, where `--steps` counts optimisation steps.
+    #[arg(long, visible_alias = "samples")]
+    steps: Option<usize>,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
@@ -159,10 +170,28 @@ pub struct Model {
     pub id: String,
     /// How photo sources are inverted.
     pub photo: swap::PhotoSettings,
+    /// Where the generator learned: the default resolution and samples per ray.
+    pub learned: Learned,
+}
+
+/// The resolution and coarse samples per ray of the generator's last training step (its
+/// checkpoint records them), else 128² and 36: what the commands render by default.
+pub struct Learned {
+    pub resolution: i64,
+    pub samples: usize,
+}
+
+impl Learned {
+    fn of(header: &Header) -> Self {
+        Self {
+            resolution: header.trained_resolution().unwrap_or(128),
+            samples: header.trained_coarse_samples().map_or(36, |n| n as usize),
+        }
+    }
 }
 
 /// The generator of `checkpoint`, or a randomly initialised one (the release's
-/// initialisation, seeded by `init_seed`) without one.
+/// initialisation, seeded by `init_seed`) for `None` (`--random-init`).
 pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch::Device) -> Result<Model> {
     let (vs, generator, header) = match checkpoint {
         Some(p) => {
@@ -171,7 +200,7 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
             (l.vs, l.generator, l.header)
         }
         None => {
-            eprintln!("no --checkpoint: a randomly initialised generator (seed {init_seed})");
+            eprintln!("--random-init: a randomly initialised generator (seed {init_seed})");
             let vs = nn::VarStore::new(dev);
             let cfg = GeneratorConfig::default();
             let g = gdrf_core::rng::with_global_seed(init_seed, || Generator::new(&vs.root(), &cfg))?;
@@ -179,6 +208,7 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
         }
     };
     let id = gdrf_core::edit::generator_id(&vs, &generator);
+    let learned = Learned::of(&header);
     Ok(Model {
         _vs: vs,
         generator,
@@ -189,6 +219,7 @@ pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch
             cfg: gdrf_core::invert::InvertConfig::where_learned(&header),
             ..Default::default()
         },
+        learned,
     })
 }
 
@@ -201,13 +232,14 @@ fn main() {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
-        Command::Render(a) => render(a),
-        Command::Bench(a) => bench::bench(a),
-        Command::Swap(a) => swap::swap(a),
-        Command::Matrix(a) => swap::matrix(a),
-        Command::Features(a) => swap::features(a),
-        Command::Interp(a) => swap::interp(a),
-        Command::Mesh(a) => mesh_cmd::mesh(a),
+        None => swap::swap(cli.swap),
+        Some(Command::Render(a)) => render(a),
+        Some(Command::Bench(a)) => bench::bench(a),
+        Some(Command::Swap(a)) => swap::swap(a),
+        Some(Command::Matrix(a)) => swap::matrix(a),
+        Some(Command::Features(a)) => swap::features(a),
+        Some(Command::Interp(a)) => swap::interp(a),
+        Some(Command::Mesh(a)) => mesh_cmd::mesh(a),
     }
 }
 
@@ -222,15 +254,16 @@ fn render(a: RenderArgs) -> Result<()> {
             a.seeds.len()
         );
     }
-    if !(1..=4096).contains(&a.resolution) {
-        bail!("--resolution {}: expected 1 to 4096 pixels", a.resolution);
+    if let Some(r) = a.resolution {
+        swap::check_resolution(r)?;
     }
     if a.views == 0 {
         bail!("--views: expected at least 1");
     }
-    let (Model { generator, camera, device: dev, .. }, threads) = swap::open(&a.model)?;
+    let (Model { generator, camera, device: dev, learned, .. }, threads) = swap::open(&a.model)?;
+    let resolution = a.resolution.unwrap_or(learned.resolution);
     let config = RenderConfig {
-        num_steps: a.steps,
+        num_steps: a.steps.unwrap_or(learned.samples),
         jitter: !a.no_jitter,
         force_last_white: a.force_last_white,
         chunk_points: a.chunk_points,
@@ -269,7 +302,7 @@ fn render(a: RenderArgs) -> Result<()> {
             .unwrap()
             .progress_chars("=> "),
     );
-    bar.set_message(format!("rendering {}×{}", a.resolution, a.resolution));
+    bar.set_message(format!("rendering {}×{}", resolution, resolution));
     let start = Instant::now();
     let mut rgb = Vec::with_capacity(total);
     let mut depth = Vec::with_capacity(total);
@@ -289,7 +322,7 @@ fn render(a: RenderArgs) -> Result<()> {
         let grids: Vec<&OccupancyGrid> = grid.iter().collect();
         for &v in &views {
             let poses = Poses::from_angles(&[v], Kind::Float, dev);
-            let (img, _) = renderer.render_image_in_grids(&lat, &poses, a.resolution, &Noise::default(), &grids)?;
+            let (img, _) = renderer.render_image_in_grids(&lat, &poses, resolution, &Noise::default(), &grids)?;
             rgb.push(img.rgb);
             depth.push(img.depth);
             bar.inc(1);
@@ -312,14 +345,14 @@ fn render(a: RenderArgs) -> Result<()> {
         let d = io::grid(&d.expand([-1, 3, -1, -1], false), cols);
         io::save_png(p, &io::to_rgb8(&d, false)?).with_context(|| format!("writing --depth-out {}", p.display()))?;
     }
-    let samples = total as f64 * (a.resolution * a.resolution) as f64 * config.samples_per_ray() as f64;
+    let samples = total as f64 * (resolution * resolution) as f64 * config.samples_per_ray() as f64;
     println!(
         "rendered {total} image(s) of {r}×{r} with {s} samples/ray on {dev:?} ({threads} threads) in {secs:.2} s \
          ({:.0} ms/image, {:.2} M samples/s) -> {}",
         1000.0 * secs / total as f64,
         samples / secs / 1e6,
         a.out.display(),
-        r = a.resolution,
+        r = resolution,
         s = config.samples_per_ray(),
     );
     Ok(())
@@ -328,13 +361,26 @@ fn render(a: RenderArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use gdrf_core::edit::Source;
 
     #[test]
     fn render_takes_the_samples_per_ray_as_steps_or_samples() {
         let steps = |flag: &str| match Cli::try_parse_from(["gdrf-edit", "render", flag, "8"]).unwrap().command {
-            Command::Render(a) => a.steps,
+            Some(Command::Render(a)) => a.steps,
             _ => unreachable!("parsed as render"),
         };
-        assert_eq!((steps("--steps"), steps("--samples")), (8, 8));
+        assert_eq!((steps("--steps"), steps("--samples")), (Some(8), Some(8)));
+    }
+
+    #[test]
+    fn a_swap_needs_no_subcommand() {
+        let cli = Cli::try_parse_from(["gdrf-edit", "--shape-from", "seed:0", "--appearance-from", "seed:1"]).unwrap();
+        assert!(cli.command.is_none());
+        assert_eq!(cli.swap.sources(), (Some(&Source::Seed(0)), Some(&Source::Seed(1))));
+        // The subcommands stay, and a half-given swap is a usage error naming the missing flag.
+        assert!(matches!(Cli::try_parse_from(["gdrf-edit", "render"]).unwrap().command, Some(Command::Render(_))));
+        let e = Cli::try_parse_from(["gdrf-edit", "--shape-from", "seed:0"]).err().unwrap();
+        assert_eq!(e.exit_code(), 2);
+        assert!(e.to_string().contains("--appearance-from"), "{e}");
     }
 }

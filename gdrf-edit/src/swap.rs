@@ -17,11 +17,15 @@ use tch::{Kind, Tensor};
 
 #[derive(Args)]
 pub struct ModelArgs {
-    /// Generator checkpoint (.safetensors; --generator is the same). Without it, a randomly
-    /// initialised generator (the release's initialisation, seeded by --init-seed).
-    #[arg(long, visible_alias = "generator", value_name = "FILE")]
+    /// Generator checkpoint (.safetensors; --generator is the same). Default: the shipped
+    /// model (models/chairs-campaign).
+    #[arg(long, visible_alias = "generator", value_name = "FILE", conflicts_with = "random_init")]
     checkpoint: Option<PathBuf>,
-    /// Seed of the randomly initialised generator used when no --checkpoint is given.
+    /// A randomly initialised generator (the release's initialisation, seeded by
+    /// --init-seed) instead of a checkpoint.
+    #[arg(long)]
+    random_init: bool,
+    /// Seed of --random-init's generator.
     #[arg(long, default_value_t = 0)]
     init_seed: i64,
     /// auto, cpu, cuda or cuda:N.
@@ -47,9 +51,10 @@ pub struct ModelArgs {
 
 #[derive(Args)]
 pub struct ViewArgs {
-    /// Image size in pixels (square).
-    #[arg(long, default_value_t = 128)]
-    resolution: i64,
+    /// Image size in pixels (square). Default: where the model learned (the resolution its
+    /// checkpoint records), else 128.
+    #[arg(long)]
+    resolution: Option<i64>,
     /// Views on a turntable (yaw spread evenly over 360° from --yaw at --pitch); --orbit is
     /// the same.
     #[arg(long, visible_alias = "orbit", default_value_t = 1)]
@@ -60,10 +65,11 @@ pub struct ViewArgs {
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more). `--samples` is the same
-    /// flag, as in gdrf-invert, where `--steps` counts optimisation steps.
-    #[arg(long, visible_alias = "samples", default_value_t = 36)]
-    steps: usize,
+    /// Coarse samples per ray N (the importance pass adds N more). Default: where the model
+    /// learned, else 36. `--samples` is the same flag, as in gdrf-invert, where `--steps`
+    /// counts optimisation steps.
+    #[arg(long, visible_alias = "samples")]
+    steps: Option<usize>,
     /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
     #[arg(long, default_value_t = 1.0)]
     psi: f64,
@@ -88,13 +94,25 @@ pub struct ViewArgs {
 }
 
 impl ViewArgs {
-    /// Applies `--preset`.
-    fn resolved(mut self) -> Self {
+    /// Applies `--preset`, and renders where `model` learned unless told otherwise.
+    fn resolved(mut self, model: &Model) -> Self {
         if self.preset.as_deref() == Some("release") {
-            self.steps = 96;
+            self.steps = Some(96);
             self.psi = 0.7;
         }
+        self.resolution.get_or_insert(model.learned.resolution);
+        self.steps.get_or_insert(model.learned.samples);
         self
+    }
+
+    /// The image size, once [`Self::resolved`].
+    fn res(&self) -> i64 {
+        self.resolution.expect("ViewArgs::resolved sets the resolution")
+    }
+
+    /// The coarse samples per ray, once [`Self::resolved`].
+    fn samples(&self) -> usize {
+        self.steps.expect("ViewArgs::resolved sets the samples per ray")
     }
 
     fn field(&self) -> FieldOptions {
@@ -102,8 +120,8 @@ impl ViewArgs {
     }
 
     fn check(&self) -> Result<()> {
-        if !(8..=4096).contains(&self.resolution) {
-            bail!("--resolution {}: expected 8 to 4096 pixels", self.resolution);
+        if let Some(r) = self.resolution {
+            check_resolution(r)?;
         }
         if self.views == 0 || self.views > 3600 {
             bail!("--views {}: expected 1 to 3600", self.views);
@@ -146,12 +164,12 @@ impl ViewArgs {
 
     fn render_config(&self) -> RenderConfig {
         let force_last_white = self.preset.as_deref() == Some("release");
-        RenderConfig { num_steps: self.steps, force_last_white, ..Default::default() }
+        RenderConfig { num_steps: self.samples(), force_last_white, ..Default::default() }
     }
 
     /// The jitter and importance uniforms of view `k`, shared by every image of that view.
     fn noise(&self, k: usize, rays: i64, device: tch::Device) -> Noise {
-        let n = self.steps as i64;
+        let n = self.samples() as i64;
         let rng = |i: u64| StepRng::new(self.noise_seed, 2 * k as u64 + i, Purpose::EditNoise, Kind::Float, device);
         Noise { jitter: Some(rng(0).uniform(&[1, rays, n])), importance: Some(rng(1).uniform(&[1, rays, n])) }
     }
@@ -160,11 +178,11 @@ impl ViewArgs {
 #[derive(Args)]
 pub struct SwapArgs {
     /// Where the shape comes from: seed:N, a feature file (.safetensors) or a photo.
-    #[arg(long, value_name = "SOURCE")]
-    shape_from: Source,
+    #[arg(long, value_name = "SOURCE", required = true)]
+    shape_from: Option<Source>,
     /// Where the appearance comes from: seed:N, a feature file or a photo.
-    #[arg(long, value_name = "SOURCE")]
-    appearance_from: Source,
+    #[arg(long, value_name = "SOURCE", required = true)]
+    appearance_from: Option<Source>,
     #[command(flatten)]
     model: ModelArgs,
     #[command(flatten)]
@@ -216,7 +234,8 @@ pub struct FeaturesArgs {
 pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     let threads = device::init_threads();
     let dev = device::select(&m.device)?;
-    let mut model = load_model(m.checkpoint.as_deref(), m.init_seed, dev)?;
+    let checkpoint = (!m.random_init).then(|| m.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator));
+    let mut model = load_model(checkpoint.as_deref(), m.init_seed, dev)?;
     if let Some(name) = &m.camera {
         model.camera = gdrf_core::CameraConfig::preset(name)?;
     }
@@ -227,6 +246,14 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     };
     model.photo.cfg.validate()?;
     Ok((model, threads))
+}
+
+/// The image sizes every subcommand renders.
+pub fn check_resolution(r: i64) -> Result<()> {
+    if !(8..=4096).contains(&r) {
+        bail!("--resolution {r}: expected 8 to 4096 pixels");
+    }
+    Ok(())
 }
 
 /// How photo sources are inverted (see [`ModelArgs`]).
@@ -264,12 +291,23 @@ pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     }
 }
 
+impl SwapArgs {
+    /// The shape's and the appearance's source as given.
+    pub fn sources(&self) -> (Option<&Source>, Option<&Source>) {
+        (self.shape_from.as_ref(), self.appearance_from.as_ref())
+    }
+}
+
 pub fn swap(mut a: SwapArgs) -> Result<()> {
-    a.view = a.view.resolved();
     a.view.check()?;
+    let (shape_from, appearance_from) = match a.sources() {
+        (Some(s), Some(p)) => (s.clone(), p.clone()),
+        _ => bail!("a swap needs both --shape-from and --appearance-from"),
+    };
     let (model, threads) = open(&a.model)?;
+    a.view = a.view.resolved(&model);
     let (shape, appearance) =
-        (resolve(&model, &a.shape_from, "--shape-from")?, resolve(&model, &a.appearance_from, "--appearance-from")?);
+        (resolve(&model, &shape_from, "--shape-from")?, resolve(&model, &appearance_from, "--appearance-from")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
     let g = &model.generator;
     let trunc = g.truncation_at(a.view.psi);
@@ -281,8 +319,8 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     let mut frames = Vec::new();
     for (k, &pose) in a.view.poses(&model.camera).iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
-        let noise = a.view.noise(k, a.view.resolution * a.view.resolution, model.device);
-        let img = renderer.render_image(&lat, &poses, a.view.resolution, &noise)?;
+        let noise = a.view.noise(k, a.view.res() * a.view.res(), model.device);
+        let img = renderer.render_image(&lat, &poses, a.view.res(), &noise)?;
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;
@@ -300,20 +338,20 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     write_sequence(&a.out, &frames)?;
     println!(
         "shape of {:?} with the appearance of {:?}: {} view(s) of {r}×{r} in {:.2} s ({threads} threads) -> {}",
-        a.shape_from,
-        a.appearance_from,
+        shape_from,
+        appearance_from,
         frames.len(),
         start.elapsed().as_secs_f64(),
         a.out.display(),
-        r = a.view.resolution
+        r = a.view.res()
     );
     Ok(())
 }
 
 pub fn matrix(mut a: MatrixArgs) -> Result<()> {
-    a.view = a.view.resolved();
     a.view.check()?;
     let (model, threads) = open(&a.model)?;
+    a.view = a.view.resolved(&model);
     let g = &model.generator;
     let features: Vec<Features> = a
         .sources
@@ -326,7 +364,7 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
-    let res = a.view.resolution;
+    let res = a.view.res();
     let start = Instant::now();
     let mut blocks = Vec::new();
     for (v, &pose) in a.view.poses(&model.camera).iter().enumerate() {
@@ -445,12 +483,12 @@ pub struct InterpArgs {
 }
 
 pub fn interp(mut a: InterpArgs) -> Result<()> {
-    a.view = a.view.resolved();
     a.view.check()?;
     if !(2..=240).contains(&a.frames) {
         bail!("--frames {}: expected 2 to 240", a.frames);
     }
     let (model, threads) = open(&a.model)?;
+    a.view = a.view.resolved(&model);
     let g = &model.generator;
     let (from, to) = (resolve(&model, &a.from, "--from")?, resolve(&model, &a.to, "--to")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
@@ -465,11 +503,11 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
     renderer.field = a.view.field();
     let pose = a.view.poses(&model.camera)[0];
     let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
-    let noise = a.view.noise(0, a.view.resolution * a.view.resolution, model.device);
+    let noise = a.view.noise(0, a.view.res() * a.view.res(), model.device);
     let start = Instant::now();
     // Only the appearance moves: one shape side, re-shaded per frame.
     let sides = if what == Interpolate::Appearance {
-        let rays = Rays::from_poses(&poses, a.view.resolution, model.camera.fov_deg);
+        let rays = Rays::from_poses(&poses, a.view.res(), model.camera.fov_deg);
         Some(renderer.shape_sides(&latents(g, &from, &from, trunc.as_ref()).shape, &rays, &noise, 0.0)?)
     } else {
         None
@@ -481,10 +519,10 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
         let lat = latents(g, &f, &f, trunc.as_ref());
         let rgb = match &sides {
             Some(sides) => {
-                let res = a.view.resolution;
+                let res = a.view.res();
                 renderer.shade_chunks(sides, &lat.appearance)?.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0
             }
-            None => renderer.render_image(&lat, &poses, a.view.resolution, &noise)?.rgb,
+            None => renderer.render_image(&lat, &poses, a.view.res(), &noise)?.rgb,
         };
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&rgb.get(0), false)?)
@@ -526,9 +564,9 @@ mod tests {
             view: ViewArgs,
         }
         let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.steps;
-        assert_eq!(steps(&["x"]), 36);
-        assert_eq!(steps(&["x", "--steps", "8"]), 8);
-        assert_eq!(steps(&["x", "--samples", "8"]), 8);
+        assert_eq!(steps(&["x"]), None, "default: where the model learned");
+        assert_eq!(steps(&["x", "--steps", "8"]), Some(8));
+        assert_eq!(steps(&["x", "--samples", "8"]), Some(8));
     }
 
     #[test]
@@ -545,12 +583,14 @@ mod tests {
             (c.resolution, c.num_steps, c.steps)
         };
         // The shipped generator's header records 32² and 24 samples per ray.
-        let shipped = gdrf_core::bench::shipped_generator();
+        let shipped = gdrf_core::paths::shipped_generator();
         let shipped = shipped.to_str().unwrap();
         assert_eq!(photo_cfg(&["x", "--checkpoint", shipped, "--photo-steps", "7", "--device", "cpu"]), (32, 12, 7));
+        // Without --checkpoint: the shipped generator.
+        assert_eq!(photo_cfg(&["x", "--device", "cpu"]).0, 32);
         // A random generator has no training record: gdrf-invert's plain defaults.
         let d = gdrf_core::invert::InvertConfig::default();
-        assert_eq!(photo_cfg(&["x", "--device", "cpu"]), (d.resolution, d.num_steps, d.steps));
+        assert_eq!(photo_cfg(&["x", "--random-init", "--device", "cpu"]), (d.resolution, d.num_steps, d.steps));
     }
 
     fn small() -> (nn::VarStore, Generator) {
@@ -569,11 +609,11 @@ mod tests {
 
     fn view() -> ViewArgs {
         ViewArgs {
-            resolution: 12,
+            resolution: Some(12),
             views: 1,
             pitch: None,
             yaw: 30.0,
-            steps: 6,
+            steps: Some(6),
             psi: 1.0,
             noise_seed: 3,
             preset: None,
@@ -648,7 +688,7 @@ mod tests {
             let e = v.check().unwrap_err().to_string();
             assert!(e.contains(flag), "{flag}: {e}");
         };
-        bad(&|v| v.resolution = 4, "--resolution");
+        bad(&|v| v.resolution = Some(4), "--resolution");
         bad(&|v| v.views = 0, "--views");
         bad(&|v| v.pitch = Some(200.0), "--pitch");
         bad(&|v| v.psi = -1.0, "--psi");

@@ -3,16 +3,17 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::checkpoint::load_generator;
-use gdrf_core::data::synth::{render_object, Metadata, Split};
+use gdrf_core::data::synth::render_object;
+use gdrf_core::data::{Metadata, Split};
 use gdrf_core::device;
 use gdrf_core::edit::{generator_id, Features};
-use gdrf_core::eval::effnet::EfficientNetLite0;
 use gdrf_core::eval::fidelity::{psnr, ssim};
 use gdrf_core::eval::probe::{structure_classes, Probe};
 use gdrf_core::invert::init::Initialiser;
 use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{load_effnet, render_views, InvertConfig, Inverter, Perceptual, Start};
 use gdrf_core::plot::{draw_panels, Panel, Series};
+use gdrf_core::pretrained::effnet::EfficientNetLite0;
 use gdrf_core::{CameraConfig, Generator};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -139,7 +140,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     if a.images == 0 || a.views == 0 || a.steps == 0 || a.reference_steps == 0 {
         bail!("--images, --views, --steps and --reference-steps must be at least 1");
     }
-    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::paths::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);
@@ -171,7 +172,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         });
     }
     let probe_path =
-        a.probe.clone().unwrap_or_else(|| gdrf_core::bench::repo_root().join("models/chairs-probe/probe.safetensors"));
+        a.probe.clone().unwrap_or_else(|| gdrf_core::paths::repo_root().join("models/chairs-probe/probe.safetensors"));
     let probe = Probe::load(&probe_path, dev).with_context(|| format!("loading --probe {}", probe_path.display()))?;
     let effnet = load_effnet(dev)?;
     let perc = Perceptual::effnet(&effnet);
@@ -359,18 +360,18 @@ fn write_outputs(
         }
     };
     let json = serde_json::json!({
-        "generator": gdrf_core::bench::shown(gen),
-        "init": a.init.as_deref().map(gdrf_core::bench::shown),
+        "generator": gdrf_core::paths::shown(gen),
+        "init": a.init.as_deref().map(gdrf_core::paths::shown),
         "dataset": a.dataset.display().to_string(),
         "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
         "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
         "device": format!("{dev:?}"), "threads": threads,
         "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
-        "probe": gdrf_core::bench::shown(probe),
+        "probe": gdrf_core::paths::shown(probe),
         "structure_agreement_of_the_ground_truth_views": truth_agreement,
         "points": points,
     });
-    gdrf_core::checkpoint::write_atomic(
+    gdrf_core::paths::write_atomic(
         &PathBuf::from(format!("{stem}.json")),
         serde_json::to_string_pretty(&json)?.as_bytes(),
     )?;
@@ -408,7 +409,7 @@ fn write_outputs(
     md += &format!(
         "\nStructure agreement: the fraction of the probe's structure classes (legs, back, arms, seat) on the novel views that match the object's own; on the ground-truth views themselves the probe agrees {truth_agreement:.3}.\n"
     );
-    gdrf_core::checkpoint::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
+    gdrf_core::paths::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
     print!("{md}");
     println!("wrote {stem}.json, {stem}.png, {stem}.md");
     Ok(())

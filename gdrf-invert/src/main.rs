@@ -7,7 +7,6 @@ use clap::Parser;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::device;
 use gdrf_core::edit::generator_id;
-use gdrf_core::eval::lpips::{Lpips, LpipsNet};
 use gdrf_core::invert::init::{self as init_stage, InitConfig, Initialiser};
 use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{
@@ -15,6 +14,7 @@ use gdrf_core::invert::{
 };
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
 use gdrf_core::plot::{draw_panels, Panel, Series};
+use gdrf_core::pretrained::lpips::{Lpips, LpipsNet};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use tch::{Kind, Tensor};
@@ -231,7 +231,7 @@ fn run(a: InvertArgs) -> Result<()> {
     }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
-    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::paths::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let learned = InvertConfig::where_learned(&m.header);
@@ -308,7 +308,7 @@ fn run(a: InvertArgs) -> Result<()> {
             let Some(backbone) = &a.lpips_backbone else {
                 bail!("--perceptual {name} needs --lpips-backbone FILE (scripts/export_lpips_backbone.py writes it)");
             };
-            let heads = gdrf_core::bench::repo_root().join(format!("weights/lpips-{}-heads.safetensors", net.name()));
+            let heads = gdrf_core::paths::repo_root().join(format!("weights/lpips-{}-heads.safetensors", net.name()));
             lpips = Lpips::load(net, backbone, &heads, dev)?;
             Some(Perceptual {
                 name: format!("LPIPS ({})", net.name()),
@@ -370,7 +370,7 @@ fn run(a: InvertArgs) -> Result<()> {
         z: None,
     };
     let start_img = view(&start_features, &[start_pose])?;
-    let input = gdrf_core::invert::resize(&photo, view_res);
+    let input = gdrf_core::io::resize(&photo, view_res);
     save_png(&a.out.join("input.png"), &to_rgb8(&input.get(0), false)?)?;
     save_png(&a.out.join("reconstruction.png"), &to_rgb8(&recon.get(0), false)?)?;
     let compare = Tensor::cat(&[input.get(0), start_img.get(0), recon.get(0)], 2);
@@ -429,7 +429,7 @@ fn run(a: InvertArgs) -> Result<()> {
         "threads": threads,
         "history": inv.history,
     });
-    gdrf_core::checkpoint::write_atomic(&a.out.join("invert.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    gdrf_core::paths::write_atomic(&a.out.join("invert.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(
         "{} steps in {seconds:.1} s{}; reconstruction PSNR {psnr:.2} dB at {view_res}²; wrote {}/features.safetensors, reconstruction.png, compare.png{}, loss.png, invert.json",
         inv.history.len(),
@@ -464,7 +464,7 @@ fn train_init(a: TrainInitArgs) -> Result<()> {
     if !a.resume && a.out.exists() {
         bail!("--out {} exists; pass --resume to continue it or choose another file", a.out.display());
     }
-    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::bench::shipped_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::paths::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
@@ -517,7 +517,7 @@ fn train_init(a: TrainInitArgs) -> Result<()> {
         "evaluations": evals,
     });
     let json_path = PathBuf::from(format!("{}.json", a.out.display()));
-    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    gdrf_core::paths::write_atomic(&json_path, serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(
         "held-out w_s MSE {:.4} against the mean code's {:.4}; pose error pitch {:.1}°, yaw {:.1}°; rendering {generate_s:.0} s, training {train_s:.0} s; wrote {} and {}",
         last.w_mse,

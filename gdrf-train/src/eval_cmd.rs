@@ -3,11 +3,11 @@
 //! and `gdrf-train eval train-probe`: train the ground-truth probe those scores need.
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use gdrf_core::data::synth::Split;
-use gdrf_core::eval::effnet::EfficientNetLite0;
+use gdrf_core::data::Split;
 use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
 use gdrf_core::eval::report::{self, EvalOptions, FeatureKind};
 use gdrf_core::eval::seeds;
+use gdrf_core::pretrained::effnet::EfficientNetLite0;
 use std::path::PathBuf;
 use std::time::Instant;
 

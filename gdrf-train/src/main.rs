@@ -9,8 +9,8 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use gdrf_core::config::CameraConfig;
 use gdrf_core::data::layouts::Layout;
-use gdrf_core::data::synth::{self, Category, Metadata, SynthOptions};
-use gdrf_core::data::{self, CacheStatus, DataConfig, LoadOptions, Prepared};
+use gdrf_core::data::synth::{self, Category, SynthOptions};
+use gdrf_core::data::{self, CacheStatus, DataConfig, LoadOptions, Metadata, Prepared};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -266,7 +266,7 @@ fn ship_cmd(a: ShipArgs) -> Result<()> {
     for name in ["generator.safetensors", "seeds.json"] {
         let from = dir.join(name);
         let bytes = std::fs::read(&from).with_context(|| format!("reading {}", from.display()))?;
-        gdrf_core::checkpoint::write_atomic(&a.out.join(name), &bytes)?;
+        gdrf_core::paths::write_atomic(&a.out.join(name), &bytes)?;
     }
     println!(
         "step {} of {} evaluations: lowest position {:.3} ({}) -> {}",
@@ -312,7 +312,7 @@ fn bar(n: usize, what: &str) -> ProgressBar {
 }
 
 fn synth_cmd(a: SynthArgs) -> Result<()> {
-    if a.out.join(synth::METADATA_FILE).exists() && !a.force {
+    if a.out.join(data::METADATA_FILE).exists() && !a.force {
         bail!("{} already holds a dataset (metadata.json); pass --force to replace it", a.out.display());
     }
     let camera = CameraConfig::preset(&a.camera)?;
@@ -334,7 +334,7 @@ fn synth_cmd(a: SynthArgs) -> Result<()> {
     let meta = synth::generate(&a.out, &opts, threads, &|| pb.inc(1))?;
     pb.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
-    let held = meta.images.iter().filter(|r| r.split == synth::Split::HeldOut).count();
+    let held = meta.images.iter().filter(|r| r.split == data::Split::HeldOut).count();
     println!(
         "wrote {} images of {}×{} to {} in {:.1} s ({:.1} images/s, {} threads); {} held out",
         meta.images.len(),
@@ -375,7 +375,7 @@ fn swap_cmd(a: SwapArgs) -> Result<()> {
     let pose = a.pitch.zip(a.yaw);
     let img = synth::render_swap(&meta, a.shape_from, a.appearance_from, pose, a.resolution, a.supersample)?;
     let bytes = synth::encode_png(img.to_rgba8(), img.resolution)?;
-    gdrf_core::checkpoint::write_atomic(&a.out, &bytes)?;
+    gdrf_core::paths::write_atomic(&a.out, &bytes)?;
     println!(
         "wrote {}: shape of object {} with the appearance of object {}",
         a.out.display(),
@@ -392,8 +392,8 @@ fn inspect_cmd(a: InspectArgs) -> Result<()> {
     opts.require_poses = a.require_poses;
     opts.skip_bad = a.skip_bad;
     opts.split = match a.split.as_str() {
-        "train" => Some(synth::Split::Train),
-        "held_out" => Some(synth::Split::HeldOut),
+        "train" => Some(data::Split::Train),
+        "held_out" => Some(data::Split::HeldOut),
         _ => None,
     };
     opts.cache = !a.no_cache;

@@ -1,4 +1,4 @@
-"""PyTorch reference of EfficientNet-Lite0 as gdrf-core/src/eval/effnet.rs computes it,
+"""PyTorch reference of EfficientNet-Lite0 as gdrf-core/src/pretrained/effnet.rs computes it,
 written independently from the layout (B0's blocks without squeeze-and-excitation, ReLU6,
 TF "same" padding, BatchNorm eps 1e-3), for the cross-check in tests/eval_features.rs.
 
@@ -125,7 +125,7 @@ def main():
             case[f"{name}.logits"] = logits
             for i, t in enumerate(taps):
                 case[f"{name}.tap{i}"] = t
-    # The LPIPS-style perceptual distance (gdrf-core/src/eval/perceptual.rs) between the
+    # The LPIPS-style perceptual distance (gdrf-core/src/pretrained/perceptual.rs) between the
     # small inputs and a perturbed copy, and its gradient with respect to the first argument.
     def unit(t):
         return t / (t.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)

@@ -12,8 +12,8 @@
 //! Every inconsistency (a pose naming a missing image, an image without a pose, an
 //! unreadable pose) is an error naming the file, or with `skip_bad` a skipped entry.
 use super::npy;
-use super::synth::{Metadata, Split, METADATA_FILE};
 use super::{folder, Skipped};
+use super::{Metadata, Split, METADATA_FILE};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};

@@ -12,7 +12,7 @@ pub mod layouts;
 pub mod npy;
 pub mod synth;
 
-use crate::checkpoint::write_atomic;
+use crate::paths::write_atomic;
 use crate::{Error, Result};
 use layouts::{Flip, Layout, ListOptions};
 use safetensors::tensor::{Dtype, TensorView};
@@ -21,8 +21,59 @@ use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use synth::Split;
+use synth::{ImageRecord, SynthOptions};
 use tch::{Device, Kind, Tensor};
+
+/// The description of a generated dataset ([`Metadata`]), written last and atomically by
+/// [`synth::generate`]: a folder without it is unfinished.
+pub const METADATA_FILE: &str = "metadata.json";
+/// The version of [`METADATA_FILE`]'s format.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Which images a loader takes from a generated dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Split {
+    Train,
+    HeldOut,
+}
+
+/// A generated dataset's description: the options that made it and every image's ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Metadata {
+    pub format_version: u32,
+    pub options: SynthOptions,
+    pub part_names: Vec<String>,
+    pub images: Vec<ImageRecord>,
+}
+
+impl Metadata {
+    pub fn load(dir: &Path) -> Result<Self> {
+        let path = dir.join(METADATA_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        let meta: Metadata = serde_json::from_str(&text).map_err(|e| Error::Data {
+            path: path.clone(),
+            reason: format!("not a gdrf synthetic dataset description: {e}"),
+        })?;
+        if meta.format_version != FORMAT_VERSION {
+            return Err(Error::Data {
+                path,
+                reason: format!("format_version {} is not supported (expected {FORMAT_VERSION})", meta.format_version),
+            });
+        }
+        Ok(meta)
+    }
+
+    /// The first view of object `i`.
+    pub fn object(&self, i: usize) -> Result<&ImageRecord> {
+        let objects = self.images.last().map_or(0, |r| r.object + 1);
+        self.images
+            .iter()
+            .find(|r| r.object == i && r.view == 0)
+            .ok_or_else(|| Error::Invalid(format!("object {i} does not exist; this dataset has objects 0..{objects}")))
+    }
+}
 
 /// A file left out of a dataset (only with `skip_bad`), and why.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -451,8 +502,8 @@ impl DataConfig {
         let Some(want) = &self.synth else {
             return Ok(Prepared::External);
         };
-        if self.path.join(synth::METADATA_FILE).is_file() {
-            let have = synth::Metadata::load(&self.path)?;
+        if self.path.join(METADATA_FILE).is_file() {
+            let have = Metadata::load(&self.path)?;
             if &have.options != want {
                 return Err(Error::Config(format!(
                     "{} holds a synthetic dataset generated with other options ({}); remove it or change data.path",

@@ -22,8 +22,8 @@
 //! The fade-in α of the release's discriminator has no meaning here (every resolution is
 //! resized to `input_size`) and is ignored.
 use super::{DiscOutput, Judge, LATENT_DIM};
-use crate::eval::effnet::{EfficientNetLite0, TAP_CHANNELS};
 use crate::nn::mapping::leaky_relu;
+use crate::pretrained::effnet::{EfficientNetLite0, TAP_CHANNELS};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;

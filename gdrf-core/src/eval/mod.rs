@@ -1,13 +1,8 @@
-//! Measuring what a generator learned: pretrained feature extractors (EfficientNet-Lite0,
-//! FID's Inception-v3), Fréchet and kernel distances, perceptual distances, and a probe
-//! trained on the procedural dataset's ground truth.
+//! Measuring what a generator learned: Fréchet and kernel distances over pretrained features
+//! ([`crate::pretrained`]), topology coverage and disentanglement from a probe trained on the
+//! procedural dataset's ground truth, pose consistency, and the one-page report.
 pub mod distance;
-pub mod effnet;
 pub mod fidelity;
-pub mod inception;
-pub mod lpips;
-pub mod perceptual;
 pub mod probe;
 pub mod report;
 pub mod seeds;
-pub mod weights;

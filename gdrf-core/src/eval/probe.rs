@@ -7,11 +7,12 @@
 //! Two backbones, measured against each other in the evaluation notes: `efficientnet`
 //! (a small head on frozen EfficientNet-Lite0 features: the last block's 320 × 7 × 7 map
 //! of the 224² input) and `scratch` (a four-layer CNN on the 64² image).
-use super::effnet::EfficientNetLite0;
-use crate::checkpoint::{copy_into, load_tensors_with, tensors_to_bytes, write_atomic};
+use crate::checkpoint::{copy_into, load_tensors_with, tensors_to_bytes};
 use crate::data::synth::chairs::{Arms, Back, Legs, SeatShape};
-use crate::data::synth::{ImageRecord, Metadata, ShapeParams, Split};
-use crate::data::{self, LoadOptions};
+use crate::data::synth::{ImageRecord, ShapeParams};
+use crate::data::{self, LoadOptions, Metadata, Split};
+use crate::paths::write_atomic;
+use crate::pretrained::effnet::EfficientNetLite0;
 use crate::rng::{Purpose, StepRng};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};

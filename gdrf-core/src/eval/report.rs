@@ -14,13 +14,15 @@
 //!   own swaps.
 //! - **Pose consistency**: the probe's yaw and pitch against the pose an image was rendered at.
 use super::distance;
-use super::effnet::EfficientNetLite0;
-use super::inception::InceptionV3;
 use super::probe::{self, class_histograms, total_variation, Predictions, Probe, FACTORS};
 use crate::camera::Poses;
-use crate::checkpoint::{load_generator, write_atomic};
-use crate::data::synth::{self, Metadata, Split};
+use crate::checkpoint::load_generator;
+use crate::data::synth;
+use crate::data::{Metadata, Split};
 use crate::field::generator::Truncation;
+use crate::paths::write_atomic;
+use crate::pretrained::effnet::EfficientNetLite0;
+use crate::pretrained::inception::InceptionV3;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{io, CameraConfig, Error, Generator, RenderConfig, Result};
@@ -143,7 +145,7 @@ impl LowResolutionEnd {
 
 /// `imgs: (N, 3, S, S)` antialiased down to `low`² and bilinearly back up to S².
 pub fn through_resolution(imgs: &Tensor, low: i64) -> Tensor {
-    crate::invert::resize(&crate::invert::resize(imgs, low), imgs.size()[2])
+    crate::io::resize(&crate::io::resize(imgs, low), imgs.size()[2])
 }
 
 /// The yaw rotation found for the model, the real images and the random generator (degrees).

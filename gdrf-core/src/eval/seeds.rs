@@ -5,7 +5,7 @@
 //! and the worst position, so that "nearer the real end" can be judged over draws rather
 //! than on one.
 use super::report::{score_rows, truncation_note, write, Calibrated, EvalResult};
-use crate::checkpoint::write_atomic;
+use crate::paths::write_atomic;
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::Path;

@@ -2,7 +2,6 @@
 use super::deform::DeformField;
 use super::template::TemplateField;
 use crate::config::GeneratorConfig;
-use crate::loss::deform_reg::{RegSamples, RegTerms, RegVariant};
 use crate::nn::film::Film;
 use crate::nn::mapping::MappingNetwork;
 use crate::Result;
@@ -170,15 +169,6 @@ impl Generator {
     /// T_σ alone at template-space points `x_t: (B, P, 3)`: `(f_t: (B, P, H), σ_t: (B, P, 1))`.
     pub fn template_density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
         self.template.density(x_t)
-    }
-
-    /// The four deformation regularisers (minimal correction, smoothness, rigidity,
-    /// normal consistency) at the samples chosen by
-    /// [`select_samples`](crate::loss::deform_reg::select_samples), for shape modulation
-    /// `shape` (one row per image). Autograd is enabled inside: the terms are built from
-    /// spatial gradients.
-    pub fn regularisers(&self, shape: &Film, samples: &RegSamples, variant: RegVariant) -> RegTerms {
-        crate::loss::deform_reg::regularisers(self, shape, samples, variant)
     }
 
     /// Full query: `(rgb: (B, P, 3), σ: (B, P, 1))`.

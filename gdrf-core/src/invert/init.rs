@@ -8,12 +8,13 @@
 //! cos yaw*)² + (sin yaw − sin yaw*)² (the yaw is predicted as a unit vector, so ±π is no
 //! edge). The last term is the paper's re-rendering loss without its LPIPS part; it renders
 //! every training image again with gradients, so it is off by default on CPUs.
-use super::resize;
 use crate::camera::Poses;
-use crate::checkpoint::{load_tensors_with, tensors_to_bytes, write_atomic};
+use crate::checkpoint::{load_tensors_with, tensors_to_bytes};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::Generator;
+use crate::io::resize;
 use crate::nn::film::Film;
+use crate::paths::write_atomic;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::train::optim::{zero_grads, Adam};

@@ -25,13 +25,15 @@ pub mod photo;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::edit::Features;
-use crate::eval::effnet::EfficientNetLite0;
-use crate::eval::perceptual::{self, EffnetPerceptual};
 use crate::field::generator::Generator;
+use crate::io::resize;
 use crate::nn::film::Film;
+use crate::pretrained::effnet::EfficientNetLite0;
+use crate::pretrained::perceptual::{self, EffnetPerceptual};
 use crate::render::occupancy::{GridConfig, OccupancyGrid};
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
+use crate::train::optim::Adam;
 use crate::{Error, Latents, Result};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -315,6 +317,30 @@ pub fn render_at_poses(
     Ok(pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0)
 }
 
+/// Adam with torch's defaults (betas 0.9, 0.999, eps 1e-8) over the inversion's tensors.
+fn new_adam(params: Vec<(String, Tensor)>) -> Adam {
+    Adam::for_tensors(params, 0.9, 0.999, 1e-8)
+}
+
+/// w_s and the raw appearance under their optimiser names.
+fn named_features(params: &[Tensor; 2]) -> Vec<(String, Tensor)> {
+    vec![("w_s".into(), params[0].shallow_clone()), ("appearance".into(), params[1].shallow_clone())]
+}
+
+fn named_pose(p: &Tensor) -> Vec<(String, Tensor)> {
+    vec![("pose".into(), p.shallow_clone())]
+}
+
+/// Zeroes the gradients the tensors hold.
+fn zero_grads<'t>(params: impl Iterator<Item = &'t Tensor>) {
+    for p in params {
+        let mut g = p.grad();
+        if g.defined() {
+            let _ = g.zero_();
+        }
+    }
+}
+
 /// The optimisation as explicit state, one [`Inverter::step`] at a time, so that a caller
 /// (the benchmark) can look at the features between steps without its time counting.
 pub struct Inverter<'a> {
@@ -328,9 +354,9 @@ pub struct Inverter<'a> {
     a0: Tensor,
     /// w_s `(1, H)` and the raw appearance `(1, 2·L_c·H)`, both requiring grad.
     params: [Tensor; 2],
-    adam: SmallAdam,
+    adam: Adam,
     /// (pitch, yaw) `(2,)` requiring grad, and its optimiser, when the pose is refined.
-    pose_param: Option<(Tensor, SmallAdam)>,
+    pose_param: Option<(Tensor, Adam)>,
     /// The photo at each render size used.
     targets: std::collections::BTreeMap<i64, Tensor>,
     /// The occupancy grid of the shape (`cfg.grid` > 0) and the step it was built at.
@@ -372,11 +398,11 @@ impl<'a> Inverter<'a> {
         let w0 = start.w_s.detach().to_kind(kind).to_device(device);
         let a0 = start.appearance_raw.detach().to_kind(kind).to_device(device);
         let params = [w0.copy().set_requires_grad(true), a0.copy().set_requires_grad(true)];
-        let adam = SmallAdam::new(&params, cfg.lr);
+        let adam = new_adam(named_features(&params));
         let pose_param = cfg.refine_pose.then(|| {
             let p = Tensor::from_slice(&[start.pose.0, start.pose.1]).to_kind(kind).to_device(device);
             let p = p.set_requires_grad(true);
-            let opt = SmallAdam::new(std::slice::from_ref(&p), cfg.pose_lr);
+            let opt = new_adam(named_pose(&p));
             (p, opt)
         });
         let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
@@ -459,14 +485,11 @@ impl<'a> Inverter<'a> {
                 "the inversion loss is not finite at step {step} (lower invert.lr or check the photo)"
             )));
         }
-        self.adam.zero_grad();
-        if let Some((_, opt)) = &mut self.pose_param {
-            opt.zero_grad();
-        }
+        zero_grads(self.params.iter().chain(self.pose_param.as_ref().map(|(p, _)| p)));
         loss.backward();
-        self.adam.step();
+        self.adam.step_tensors(named_features(&self.params), cfg.lr);
         if let Some((p, opt)) = &mut self.pose_param {
-            opt.step();
+            opt.step_tensors(named_pose(p), cfg.pose_lr);
             self.pose = (p.double_value(&[0]), p.double_value(&[1]));
         }
         self.seconds += t0.elapsed().as_secs_f64();
@@ -592,63 +615,6 @@ pub fn render_views(
     let (kind, device) = g.kind_device();
     let p = Poses::from_angles(poses, kind, device);
     Ok(tch::no_grad(|| r.render_image(&lat, &p, res, &Noise::midpoints(k, res * res, n as i64, device)))?.rgb)
-}
-
-/// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.
-pub fn resize(img: &Tensor, res: i64) -> Tensor {
-    let s = img.size();
-    if s[2] == res && s[3] == res {
-        return img.shallow_clone();
-    }
-    if s[2] > res {
-        img.internal_upsample_bilinear2d_aa([res, res], false, None, None)
-    } else {
-        img.upsample_bilinear2d([res, res], false, None, None)
-    }
-}
-
-/// Adam (betas 0.9, 0.999, eps 1e-8) over a few free tensors.
-struct SmallAdam {
-    params: Vec<Tensor>,
-    m: Vec<Tensor>,
-    v: Vec<Tensor>,
-    lr: f64,
-    t: i32,
-}
-
-impl SmallAdam {
-    fn new(params: &[Tensor], lr: f64) -> Self {
-        let zeros = || params.iter().map(|p| p.zeros_like().detach()).collect::<Vec<_>>();
-        Self { params: params.iter().map(|p| p.shallow_clone()).collect(), m: zeros(), v: zeros(), lr, t: 0 }
-    }
-
-    fn zero_grad(&mut self) {
-        for p in &mut self.params {
-            let mut g = p.grad();
-            if g.defined() {
-                let _ = g.zero_();
-            }
-        }
-    }
-
-    fn step(&mut self) {
-        const B1: f64 = 0.9;
-        const B2: f64 = 0.999;
-        self.t += 1;
-        let (bc1, bc2) = (1.0 - B1.powi(self.t), 1.0 - B2.powi(self.t));
-        tch::no_grad(|| {
-            for ((p, m), v) in self.params.iter_mut().zip(&mut self.m).zip(&mut self.v) {
-                let g = p.grad();
-                if !g.defined() {
-                    continue;
-                }
-                let _ = m.g_mul_scalar_(B1).g_add_(&(&g * (1.0 - B1)));
-                let _ = v.g_mul_scalar_(B2).g_add_(&(g.square() * (1.0 - B2)));
-                let denom = v.sqrt() / bc2.sqrt() + 1e-8;
-                let _ = p.g_sub_(&(&*m / &denom * (self.lr / bc1)));
-            }
-        });
-    }
 }
 
 #[cfg(test)]

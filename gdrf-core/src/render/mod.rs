@@ -7,6 +7,6 @@ pub mod samplers;
 pub mod staged;
 
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
-pub use occupancy::{GridConfig, OccupancyGrid, RayColours};
-pub use renderer::{assemble_image, DensitySamples, Image, Noise, RenderedRays, Renderer};
+pub use occupancy::{GridConfig, OccupancyGrid};
+pub use renderer::{assemble_image, DensitySamples, Image, Noise, RayColours, RenderedRays, Renderer};
 pub use staged::ShapeSide;

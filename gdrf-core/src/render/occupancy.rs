@@ -5,8 +5,8 @@
 //! them. The grid depends on the shape modulation only, so a
 //! grid is built once per shape and reused for every view and every appearance.
 use super::composite::composite;
-use super::renderer::{Noise, Renderer};
-use crate::camera::Rays;
+use super::renderer::{Image, Noise, RayColours, Renderer};
+use crate::camera::{Poses, Rays};
 use crate::config::CameraConfig;
 use crate::field::generator::{FieldOptions, Latents};
 use crate::field::RadianceField;
@@ -191,32 +191,27 @@ impl OccupancyGrid {
     }
 }
 
-/// Colours of a bundle of rays and what they cost.
-#[derive(Debug)]
-pub struct RayColours {
-    /// `(B, R, 3)` pixels in (0, 1), `(B, R, 1)` expected depth and opacity.
-    pub pixel: Tensor,
-    pub depth: Tensor,
-    pub opacity: Tensor,
-    /// Density (Φ + T_σ) and colour (T_c) queries spent.
-    pub density_evals: i64,
-    pub colour_evals: i64,
-}
-
-impl RayColours {
-    pub(crate) fn concat(parts: Vec<RayColours>) -> RayColours {
-        let cat = |f: &dyn Fn(&RayColours) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
-        RayColours {
-            pixel: cat(&|p| &p.pixel),
-            depth: cat(&|p| &p.depth),
-            opacity: cat(&|p| &p.opacity),
-            density_evals: parts.iter().map(|p| p.density_evals).sum(),
-            colour_evals: parts.iter().map(|p| p.colour_evals).sum(),
-        }
-    }
-}
-
 impl<F: RadianceField> Renderer<'_, F> {
+    /// [`Renderer::render_image`], each image inside its shape's occupancy grid when `grids`
+    /// holds one per image (empty: no grid). Also returns the density and colour queries
+    /// spent.
+    pub fn render_image_in_grids(
+        &self,
+        latents: &Latents,
+        poses: &Poses,
+        res: i64,
+        noise: &Noise,
+        grids: &[&OccupancyGrid],
+    ) -> Result<(Image, (i64, i64))> {
+        if !grids.is_empty() && grids.len() as i64 != poses.len() {
+            return Err(Error::Invalid(format!("{} occupancy grids for {} images", grids.len(), poses.len())));
+        }
+        self.render_image_with(latents, poses, res, noise, |i, lat, rays, noise| match grids.get(i) {
+            Some(grid) => self.render_in_grid(lat, rays, grid, noise),
+            None => self.render_bundle(lat, rays, noise),
+        })
+    }
+
     /// The occupancy grid of one shape (row `i` of `shape`) for this renderer's camera.
     pub fn occupancy_grid(&self, shape: &Film, cfg: GridConfig) -> Result<OccupancyGrid> {
         OccupancyGrid::build(

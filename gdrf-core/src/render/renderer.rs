@@ -1,7 +1,6 @@
 //! The GDRF renderer: coarse pass, importance pass, merge, integrate — for training
 //! batches (with gradients), patches, and chunked inference in bounded memory.
 use super::composite::{composite, transmittance, weights_from_density, CompositeOptions};
-use super::occupancy::{OccupancyGrid, RayColours};
 use super::samplers::{
     gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in, OccupiedLength,
 };
@@ -129,6 +128,31 @@ pub struct Image {
     pub depth: Tensor,
     /// `(B, 1, H, W)` accumulated opacity.
     pub opacity: Tensor,
+}
+
+/// Colours of a bundle of rays and what they cost.
+#[derive(Debug)]
+pub struct RayColours {
+    /// `(B, R, 3)` pixels in (0, 1), `(B, R, 1)` expected depth and opacity.
+    pub pixel: Tensor,
+    pub depth: Tensor,
+    pub opacity: Tensor,
+    /// Density (Φ + T_σ) and colour (T_c) queries spent.
+    pub density_evals: i64,
+    pub colour_evals: i64,
+}
+
+impl RayColours {
+    pub(crate) fn concat(parts: Vec<RayColours>) -> RayColours {
+        let cat = |f: &dyn Fn(&RayColours) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
+        RayColours {
+            pixel: cat(&|p| &p.pixel),
+            depth: cat(&|p| &p.depth),
+            opacity: cat(&|p| &p.opacity),
+            density_evals: parts.iter().map(|p| p.density_evals).sum(),
+            colour_evals: parts.iter().map(|p| p.colour_evals).sum(),
+        }
+    }
 }
 
 /// Renders a radiance field (the generator by default) with a camera and sampling
@@ -497,34 +521,29 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so
     /// any resolution fits in bounded memory.
     pub fn render_image(&self, latents: &Latents, poses: &Poses, res: i64, noise: &Noise) -> Result<Image> {
-        Ok(self.render_image_in_grids(latents, poses, res, noise, &[])?.0)
+        Ok(self
+            .render_image_with(latents, poses, res, noise, |_, lat, rays, noise| self.render_bundle(lat, rays, noise))?
+            .0)
     }
 
-    /// [`Self::render_image`], each image inside its shape's occupancy grid when `grids`
-    /// holds one per image (empty: no grid). Also returns the density and colour queries
+    /// Renders `res × res` images without gradients one image at a time, each image's rays
+    /// by `per_image(i, latents, rays, noise)`. Also returns the density and colour queries
     /// spent.
-    pub fn render_image_in_grids(
+    pub(crate) fn render_image_with(
         &self,
         latents: &Latents,
         poses: &Poses,
         res: i64,
         noise: &Noise,
-        grids: &[&OccupancyGrid],
+        per_image: impl Fn(usize, &Latents, &Rays, &Noise) -> Result<RayColours>,
     ) -> Result<(Image, (i64, i64))> {
         let rays = Rays::from_poses(poses, res, self.camera.fov_deg);
         let (b, r) = (poses.len(), res * res);
-        if !grids.is_empty() && grids.len() as i64 != b {
-            return Err(Error::Invalid(format!("{} occupancy grids for {b} images", grids.len())));
-        }
         let mut parts = Vec::new();
         tch::no_grad(|| -> Result<()> {
             for i in 0..b {
                 let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
-                parts.push(if let Some(grid) = grids.get(i as usize) {
-                    self.render_in_grid(&lat, &rays, grid, &noise)?
-                } else {
-                    self.render_bundle(&lat, &rays, &noise)?
-                });
+                parts.push(per_image(i as usize, &lat, &rays, &noise)?);
             }
             Ok(())
         })?;

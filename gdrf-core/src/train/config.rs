@@ -326,11 +326,11 @@ impl TrainConfig {
     }
 
     /// The config as a run stores it (its config.toml, every checkpoint): paths inside the
-    /// repository ([`crate::bench::repo_root`]) relative to it, so that the stored run names no
+    /// repository ([`crate::paths::repo_root`]) relative to it, so that the stored run names no
     /// machine's folder and a copy of it resumes in another clone. Paths elsewhere stay
     /// absolute. [`TrainConfig::from_store`] undoes it.
     pub fn to_store(&self) -> Self {
-        let root = crate::bench::repo_root();
+        let root = crate::paths::repo_root();
         let rel = |p: &Path| p.strip_prefix(&root).map(Path::to_path_buf).unwrap_or_else(|_| p.to_path_buf());
         self.map_paths(&rel)
     }
@@ -339,7 +339,7 @@ impl TrainConfig {
     /// the repository root. Absolute paths (older runs, folders outside the repository) are
     /// kept.
     pub fn from_store(&self) -> Self {
-        let root = crate::bench::repo_root();
+        let root = crate::paths::repo_root();
         self.map_paths(&|p: &Path| if p.is_relative() { root.join(p) } else { p.to_path_buf() })
     }
 
@@ -636,7 +636,7 @@ path = "data/x"
 
     #[test]
     fn a_stored_config_names_repository_paths_relative_to_it() {
-        let root = crate::bench::repo_root();
+        let root = crate::paths::repo_root();
         let cfg = TrainConfig::load(&root.join("configs/chairs-campaign.toml")).unwrap();
         assert_eq!(cfg.data.path, root.join("data/chairs-64"));
         let stored = cfg.to_store();

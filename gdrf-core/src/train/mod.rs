@@ -22,7 +22,7 @@ use crate::checkpoint::{self, Header};
 use crate::data::{self, Dataset};
 use crate::disc::augment::AugmentedJudge;
 use crate::disc::Judge;
-use crate::loss::deform_reg::{reg_ray_count, select_samples};
+use crate::loss::deform_reg::{reg_ray_count, regularisers, select_samples};
 use crate::loss::{generator_image_terms, generator_regularisation, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
@@ -269,7 +269,7 @@ impl Trainer {
         t.cfg = cfg;
         t.datasets.clear();
         t.permutation = None;
-        checkpoint::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_store().to_toml()?.as_bytes())?;
+        crate::paths::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_store().to_toml()?.as_bytes())?;
         Ok(t)
     }
 
@@ -561,7 +561,7 @@ impl Trainer {
             renderer.render_image(&lat, &poses, small, &noise)
         })?
         .rgb;
-        let target = crate::invert::resize(real, small).repeat_interleave_self_int(k, 0, None);
+        let target = crate::io::resize(real, small).repeat_interleave_self_int(k, 0, None);
         let dist = (candidates - target).square().mean_dim([1i64, 2, 3].as_slice(), false, Kind::Float).view([b, k]);
         let best = dist.argmin(1, false) + Tensor::arange(b, (Kind::Int64, dist.device())) * k;
         let z_best = z.index_select(0, &best);
@@ -809,7 +809,7 @@ impl Trainer {
         let lat = gen.latents(z, z, None);
         let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
         let reg = generator_regularisation(
-            gen.regularisers(&lat.shape, &samples, cfg.reg.variant),
+            regularisers(gen, &lat.shape, &samples, cfg.reg.variant),
             &cfg.reg,
             cfg.reg_scale(at.step),
         );
@@ -1039,7 +1039,7 @@ impl Trainer {
         std::fs::create_dir_all(&self.run_dir).map_err(|source| Error::Io { path: self.run_dir.clone(), source })?;
         if run::list_checkpoints(&self.run_dir)?.is_empty() {
             run::truncate_metrics(&self.run_dir, self.progress.step)?;
-            checkpoint::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_store().to_toml()?.as_bytes())?;
+            crate::paths::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_store().to_toml()?.as_bytes())?;
             self.save_checkpoint()?;
             if self.cfg.schedule.sample_interval > 0 {
                 samples::write_previews(self)?;
@@ -1116,7 +1116,7 @@ impl Trainer {
                 steps: e.steps,
                 seed: seeds[0],
                 features: FeatureKind::Efficientnet,
-                effnet_weights: crate::eval::effnet::EfficientNetLite0::default_path(),
+                effnet_weights: crate::pretrained::effnet::EfficientNetLite0::default_path(),
                 threads: self.cfg.threads,
                 real_resolution: None,
                 psi: 1.0,
@@ -1125,8 +1125,8 @@ impl Trainer {
         }
         let header = self.header("generator");
         // As committed records show them: relative to the repository where inside it.
-        let name = crate::bench::shown(&self.run_dir.join(run::GENERATOR));
-        let dataset = PathBuf::from(crate::bench::shown(&self.cfg.data.path));
+        let name = crate::paths::shown(&self.run_dir.join(run::GENERATOR));
+        let dataset = PathBuf::from(crate::paths::shown(&self.cfg.data.path));
         let ev = self.evaluator.as_mut().expect("built above");
         let mut results = Vec::with_capacity(seeds.len());
         let mut seed_start = start;

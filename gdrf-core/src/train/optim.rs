@@ -5,7 +5,8 @@ use std::collections::BTreeMap;
 use tch::{nn, Tensor};
 
 /// Adam as `torch.optim.Adam` computes it (bias-corrected, eps outside the square root,
-/// no weight decay) over the trainable variables of a VarStore, by name.
+/// no weight decay) over named tensors: the trainable variables of a VarStore (training,
+/// the initialiser), or a few free tensors (inversion's features and pose).
 #[derive(Debug)]
 pub struct Adam {
     pub beta1: f64,
@@ -21,20 +22,29 @@ pub struct Adam {
 impl Adam {
     /// Zero moments for every variable of `vs`.
     pub fn new(vs: &nn::VarStore, beta1: f64, beta2: f64, eps: f64) -> Self {
-        let vars = vs.variables();
-        let zeros = |vars: &std::collections::HashMap<String, Tensor>| {
-            vars.iter().map(|(n, t)| (n.clone(), t.zeros_like().detach())).collect::<BTreeMap<_, _>>()
-        };
-        Self { beta1, beta2, eps, t: 0, m: zeros(&vars), v: zeros(&vars) }
+        Self::for_tensors(vs.variables(), beta1, beta2, eps)
     }
 
-    /// One update of every variable that has a gradient, with learning rate `lr`.
+    /// Zero moments for each named tensor of `params`.
+    pub fn for_tensors(params: impl IntoIterator<Item = (String, Tensor)>, beta1: f64, beta2: f64, eps: f64) -> Self {
+        let params: Vec<(String, Tensor)> = params.into_iter().collect();
+        let zeros = || params.iter().map(|(n, t)| (n.clone(), t.zeros_like().detach())).collect::<BTreeMap<_, _>>();
+        Self { beta1, beta2, eps, t: 0, m: zeros(), v: zeros() }
+    }
+
+    /// One update of every variable of `vs` that has a gradient, with learning rate `lr`.
     pub fn step(&mut self, vs: &nn::VarStore, lr: f64) {
+        self.step_tensors(vs.variables(), lr)
+    }
+
+    /// One update of every tensor of `params` (named as at construction) that has a
+    /// gradient, with learning rate `lr`.
+    pub fn step_tensors(&mut self, params: impl IntoIterator<Item = (String, Tensor)>, lr: f64) {
         self.t += 1;
         let bc1 = 1.0 - self.beta1.powi(self.t as i32);
         let bc2 = 1.0 - self.beta2.powi(self.t as i32);
         tch::no_grad(|| {
-            for (name, mut p) in vs.variables() {
+            for (name, mut p) in params {
                 let g = p.grad();
                 if !g.defined() {
                     continue;

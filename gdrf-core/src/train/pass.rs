@@ -2,7 +2,7 @@
 //! (which never render themselves).
 use crate::camera::Poses;
 use crate::disc::Judge;
-use crate::loss::deform_reg::select_samples;
+use crate::loss::deform_reg::{regularisers, select_samples};
 use crate::loss::{discriminator_loss, generator_loss, LossConfig, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::{Generator, Latents, Result};
@@ -53,7 +53,7 @@ pub fn generator_judgement(
 ) -> Result<Losses> {
     let d = disc.judge(img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
-    let reg = generator.regularisers(&fake.latents.shape, &samples, cfg.reg.variant);
+    let reg = regularisers(generator, &fake.latents.shape, &samples, cfg.reg.variant);
     generator_loss(&d, img, &fake.poses.stacked(), fake.z, reg, at, cfg)
 }
 

@@ -153,7 +153,7 @@ pub fn truncate_jsonl(path: &Path, keep: impl Fn(i64) -> bool) -> Result<()> {
         .filter(|v| v["step"].as_i64().is_some_and(&keep))
         .map(|v| v.to_string() + "\n")
         .collect();
-    crate::checkpoint::write_atomic(path, kept.concat().as_bytes())
+    crate::paths::write_atomic(path, kept.concat().as_bytes())
 }
 
 #[cfg(test)]

@@ -106,7 +106,7 @@ fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value> {
 fn write_report(out_dir: &Path, name: &str, doc: &serde_json::Value) -> Result<()> {
     std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
     let json_path = out_dir.join(format!("{name}.json"));
-    gdrf_core::checkpoint::write_atomic(&json_path, serde_json::to_string_pretty(doc)?.as_bytes())?;
+    gdrf_core::paths::write_atomic(&json_path, serde_json::to_string_pretty(doc)?.as_bytes())?;
     let png = out_dir.join(format!("{name}.png"));
     gdrf_core::bench::run_script("plot_bench.py", &[&json_path, &png])?;
     println!("wrote {} and {}", json_path.display(), png.display());

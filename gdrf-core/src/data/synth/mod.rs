@@ -14,9 +14,9 @@ pub mod rng;
 pub mod sdf;
 pub mod tables;
 
-use super::par_try_map;
-use crate::checkpoint::write_atomic;
+use super::{par_try_map, Metadata, Split, FORMAT_VERSION, METADATA_FILE};
 use crate::config::{CameraConfig, PoseDistribution};
+use crate::paths::write_atomic;
 use crate::{Error, Result};
 use material::Appearance;
 use render::{fit_radius, render, RenderOptions, Rendered, Scene};
@@ -24,9 +24,6 @@ use rng::{object_seed, Rng, Stream};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
-
-pub const METADATA_FILE: &str = "metadata.json";
-pub const FORMAT_VERSION: u32 = 1;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -93,14 +90,6 @@ pub fn sample_object(category: Category, seed: u64) -> (ShapeParams, Appearance)
     let shape = ShapeParams::sample(category, &mut Rng::new(seed, Stream::Shape));
     let appearance = Appearance::sample(&mut Rng::new(seed, Stream::Appearance));
     (shape, appearance)
-}
-
-/// Which images a loader takes from a generated dataset.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Split {
-    Train,
-    HeldOut,
 }
 
 /// Everything that determines a generated dataset (same options → identical bytes).
@@ -196,42 +185,6 @@ pub struct ImageRecord {
     pub yaw: f64,
     pub shape: ShapeParams,
     pub appearance: Appearance,
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Metadata {
-    pub format_version: u32,
-    pub options: SynthOptions,
-    pub part_names: Vec<String>,
-    pub images: Vec<ImageRecord>,
-}
-
-impl Metadata {
-    pub fn load(dir: &Path) -> Result<Self> {
-        let path = dir.join(METADATA_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-        let meta: Metadata = serde_json::from_str(&text).map_err(|e| Error::Data {
-            path: path.clone(),
-            reason: format!("not a gdrf synthetic dataset description: {e}"),
-        })?;
-        if meta.format_version != FORMAT_VERSION {
-            return Err(Error::Data {
-                path,
-                reason: format!("format_version {} is not supported (expected {FORMAT_VERSION})", meta.format_version),
-            });
-        }
-        Ok(meta)
-    }
-
-    /// The first view of object `i`.
-    pub fn object(&self, i: usize) -> Result<&ImageRecord> {
-        let objects = self.images.last().map_or(0, |r| r.object + 1);
-        self.images
-            .iter()
-            .find(|r| r.object == i && r.view == 0)
-            .ok_or_else(|| Error::Invalid(format!("object {i} does not exist; this dataset has objects 0..{objects}")))
-    }
 }
 
 /// The ground truth of image `index` (no rendering).

@@ -6,6 +6,8 @@
 //! and of the thread count. Hand-written so the sequence can never change under us with a
 //! dependency upgrade (same seed → byte-identical datasets across versions).
 
+use crate::rng::mix64;
+
 /// What a generator is used for; each stream gives an independent sequence.
 #[derive(Debug, Clone, Copy)]
 pub enum Stream {
@@ -13,13 +15,6 @@ pub enum Stream {
     Appearance = 2,
     Pose = 3,
     Split = 4,
-}
-
-/// SplitMix64's finaliser: a bijective 64-bit mix.
-pub fn mix64(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
 }
 
 /// The seed of object `index` in a dataset generated with `seed`.

@@ -14,7 +14,7 @@
 //!
 //! The distance is differentiable with respect to both images (it serves as a loss for
 //! photo inversion); the weights never require a gradient.
-use crate::eval::weights::{Conv2d, Weights};
+use crate::pretrained::weights::{Conv2d, Weights};
 use crate::{Error, Result};
 use std::path::Path;
 use tch::{Device, Kind, Tensor};

@@ -181,7 +181,7 @@ impl EfficientNetLite0 {
     pub fn default_path() -> std::path::PathBuf {
         match std::env::var_os("GDRF_EFFNET_WEIGHTS") {
             Some(p) => p.into(),
-            None => crate::bench::repo_root().join("weights/efficientnet-lite0.safetensors"),
+            None => crate::paths::repo_root().join("weights/efficientnet-lite0.safetensors"),
         }
     }
 

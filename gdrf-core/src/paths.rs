@@ -1,0 +1,62 @@
+//! Where things are and how files are written: the repository's folder and what lies in it
+//! (the shipped generator, the project's Python), paths as shown in committed files, and
+//! atomic writes.
+use crate::{Error, Result};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// The project's folder (its scripts, weights, shipped models and virtual environment):
+/// `$GDRF_ROOT` when set (binaries copied to another machine or folder), else the
+/// repository the binaries were built in.
+pub fn repo_root() -> PathBuf {
+    match std::env::var_os("GDRF_ROOT") {
+        Some(p) => p.into(),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).parent().map(Path::to_path_buf).unwrap_or_default(),
+    }
+}
+
+/// The shipped generator (models/chairs-campaign: the campaign's checkpoint its learning
+/// curve ranks best), the default of the commands that need one.
+pub fn shipped_generator() -> PathBuf {
+    repo_root().join("models/chairs-campaign/generator.safetensors")
+}
+
+/// `path` as written into committed figures: relative to the repository when it lies in it
+/// (a shipped model), so that no machine's folder appears in them.
+pub fn shown(path: &Path) -> String {
+    path.strip_prefix(repo_root()).unwrap_or(path).display().to_string()
+}
+
+/// `$GDRF_PYTHON`, else the project's `.venv` (made by `scripts/setup.sh`).
+pub fn python() -> PathBuf {
+    std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo_root().join(".venv/bin/python"))
+}
+
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
+    move |source| Error::Io { path: path.to_path_buf(), source }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same folder, flushed to
+/// disk, then renamed over the target. A crash leaves either the old or the new file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let name = path.file_name().ok_or_else(|| Error::Invalid(format!("{}: not a file path", path.display())))?;
+    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
+        f.write_all(bytes).map_err(io_err(&tmp))?;
+        f.sync_all().map_err(io_err(&tmp))?;
+        std::fs::rename(&tmp, path).map_err(io_err(path))?;
+        if let Ok(d) = std::fs::File::open(&dir) {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
