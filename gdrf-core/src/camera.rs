@@ -82,6 +82,30 @@ impl Poses {
     }
 }
 
+/// `n` views on a turntable, (pitch, yaw) in radians: the pitch held, the yaw from `yaw0` in
+/// equal steps over a full turn.
+pub fn turntable(pitch: f64, yaw0: f64, n: usize) -> Vec<(f64, f64)> {
+    (0..n).map(|k| (pitch, yaw0 + std::f64::consts::TAU * k as f64 / n as f64)).collect()
+}
+
+/// The release's elliptical camera path over `n` views, (pitch, yaw) in radians:
+/// θ = h_mean + h_std·cos a, v = v_mean + v_std·sin a over a = linspace(0, 2π, n), with v
+/// converted by arccos(1 − 2v/π) for spherical-uniform cameras, as the release does.
+pub fn release_ellipse(cam: &CameraConfig, n: usize) -> Vec<(f64, f64)> {
+    let steps = n.max(2);
+    (0..n)
+        .map(|k| {
+            let t = std::f64::consts::TAU * k as f64 / (steps - 1) as f64;
+            let v = cam.v_mean + cam.v_std * t.sin();
+            let pitch = match cam.distribution {
+                PoseDistribution::SphericalUniform => (1.0 - 2.0 * v / PI).clamp(-1.0, 1.0).acos(),
+                _ => v,
+            };
+            (pitch, cam.h_mean + cam.h_std * t.cos())
+        })
+        .collect()
+}
+
 /// Row 2k of `t` repeated at row 2k + 1 (a last unpaired row stays): pairs of images that
 /// differ only by their codes. Each row is still a draw from its distribution.
 pub fn rows_in_pairs(t: &Tensor) -> Tensor {
@@ -290,6 +314,25 @@ mod tests {
 
     fn max_abs(t: &Tensor) -> f64 {
         f64::try_from(t.abs().max()).unwrap()
+    }
+
+    #[test]
+    fn camera_paths() {
+        let t = turntable(0.5, 0.25, 4);
+        let want = [0.25, 0.25 + PI / 2.0, 0.25 + PI, 0.25 + 1.5 * PI];
+        assert_eq!(t.len(), 4);
+        for ((p, y), w) in t.iter().zip(want) {
+            assert_eq!(*p, 0.5);
+            assert!((y - w).abs() < 1e-15, "{y} vs {w}");
+        }
+        // The release's ellipse: at a = 0 the mean pitch (converted for spherical-uniform
+        // cameras) and yaw h_mean + h_std; at a = π/2 (n = 5) pitch v_mean + v_std, yaw h_mean.
+        let cam = CameraConfig { distribution: PoseDistribution::SphericalUniform, ..CameraConfig::chair() };
+        let e = release_ellipse(&cam, 5);
+        let pitch = |v: f64| (1.0 - 2.0 * v / PI).acos();
+        assert!((e[0].0 - pitch(cam.v_mean)).abs() < 1e-12 && (e[0].1 - (cam.h_mean + cam.h_std)).abs() < 1e-12);
+        assert!((e[1].0 - pitch(cam.v_mean + cam.v_std)).abs() < 1e-12 && (e[1].1 - cam.h_mean).abs() < 1e-12);
+        assert_eq!(e[0], e[4], "a closed path");
     }
 
     #[test]

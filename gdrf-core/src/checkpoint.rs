@@ -399,7 +399,7 @@ mod tests {
     fn interpolation_mixes_every_parameter_and_refuses_mismatches() {
         let dir = std::env::temp_dir().join(format!("gdrf-ckpt-mix-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let cfg = GeneratorConfig { hidden_dim: 16, mapping_hidden_dim: 8, latent_dim: 4, ..Default::default() };
+        let cfg = GeneratorConfig { mapping_hidden_dim: 8, latent_dim: 4, ..GeneratorConfig::tiny() };
         let write = |name: &str, cfg: &GeneratorConfig, camera: Option<CameraConfig>, fill: f64| {
             let vs = nn::VarStore::new(Device::Cpu);
             let _g = Generator::new(&vs.root(), cfg).unwrap();
@@ -494,7 +494,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("gdrf-ckpt-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("g.safetensors");
-        let cfg = GeneratorConfig { hidden_dim: 16, mapping_hidden_dim: 8, latent_dim: 4, ..Default::default() };
+        let cfg = GeneratorConfig { mapping_hidden_dim: 8, latent_dim: 4, ..GeneratorConfig::tiny() };
         let vs = nn::VarStore::new(Device::Cpu);
         let _g = Generator::new(&vs.root(), &cfg).unwrap();
         save_generator(&path, &vs, &Header::generator(cfg.clone(), Some(CameraConfig::car()))).unwrap();

@@ -66,6 +66,12 @@ impl Default for GeneratorConfig {
 }
 
 impl GeneratorConfig {
+    /// A generator small enough to build and render in milliseconds (8-d codes, 16 hidden
+    /// units everywhere): the fixture of the tests.
+    pub fn tiny() -> Self {
+        Self { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() }
+    }
+
     pub fn validate(&self) -> Result<()> {
         let positive = [
             ("latent_dim", self.latent_dim),

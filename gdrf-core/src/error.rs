@@ -3,8 +3,10 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    /// `err` is not named `source` on purpose: its text is already in this error's, and a
+    /// source would be printed a second time by every error chain (`{:#}`).
+    #[error("{path}: {err}")]
+    Io { path: PathBuf, err: std::io::Error },
     #[error("{path}: not a gdrf checkpoint ({reason})")]
     NotACheckpoint { path: PathBuf, reason: String },
     #[error("{path}: tensor '{name}' has shape {found:?}, the model expects {expected:?}")]

@@ -40,7 +40,7 @@ pub fn grid(images: &Tensor, cols: i64) -> Tensor {
 /// that already holds files is refused unless `force`, so that no earlier output is mixed
 /// with or overwritten by a new one by accident.
 pub fn output_dir(dir: &Path, force: bool, flag: &str) -> Result<()> {
-    let io = |source| Error::Io { path: dir.to_path_buf(), source };
+    let io = |source| Error::Io { path: dir.to_path_buf(), err: source };
     if dir.is_dir() && std::fs::read_dir(dir).map_err(io)?.next().is_some() && !force {
         return Err(Error::Invalid(format!(
             "{flag} {}: the folder already holds files; pass --force to write into it",
@@ -82,6 +82,17 @@ pub fn colormap(values: &Tensor) -> Tensor {
     rgb.transpose(0, 1).reshape([3, h, w]) * 2.0 - 1.0
 }
 
+/// Depth maps `(B, 1, H, W)` (or `(1, H, W)`) through viridis, near (`near`, dark) to far
+/// (`far`, yellow), as images in [−1, 1] with three channels: the one depth picture of every
+/// command.
+pub fn depth_map(depth: &Tensor, near: f64, far: f64) -> Tensor {
+    let d = (depth - near) / (far - near);
+    if d.dim() == 3 {
+        return colormap(&d);
+    }
+    Tensor::stack(&(0..d.size()[0]).map(|i| colormap(&d.get(i))).collect::<Vec<_>>(), 0)
+}
+
 /// Writes frames as an endlessly looping animated GIF (`delay_ms` per frame), atomically.
 pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Result<()> {
     use image::codecs::gif::{GifEncoder, Repeat};
@@ -115,6 +126,19 @@ pub fn resize(img: &Tensor, res: i64) -> Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn depth_maps_run_from_near_dark_to_far_yellow() {
+        let d = Tensor::from_slice(&[0.5f32, 1.5, 9.0]).view([1, 1, 1, 3]);
+        let m = depth_map(&d, 0.5, 1.5);
+        assert_eq!(m.size(), [1, 3, 1, 3]);
+        let px = |i: i64| Vec::<f32>::try_from((m.get(0).select(1, 0).select(1, i) + 1.0) / 2.0).unwrap();
+        let close = |a: Vec<f32>, b: [f32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+        assert!(close(px(0), [0.267, 0.005, 0.329]), "near: viridis' first stop");
+        assert!(close(px(1), [0.993, 0.906, 0.144]), "far: its last");
+        assert!(close(px(2), [0.993, 0.906, 0.144]), "beyond far: clamped");
+        assert_eq!(depth_map(&d.get(0), 0.5, 1.5).size(), [3, 1, 3]);
+    }
 
     #[test]
     fn occupied_output_folders_need_force() {

@@ -297,8 +297,7 @@ mod tests {
         use tch::{nn, Device, Kind, Tensor};
         tch::manual_seed(11);
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg =
-            crate::GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let cfg = crate::GeneratorConfig::tiny();
         let mut g = Generator::new(&vs.root(), &cfg).unwrap();
         tch::no_grad(|| {
             let _ = g.deform.head.weight.uniform_(-0.003, 0.003);

@@ -7,6 +7,7 @@ use gdrf_core::bench::{median, peak_rss_mb, run_reference, run_script};
 use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
+use gdrf_core::eval::fidelity::psnr_all;
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::field::RadianceField;
 use gdrf_core::nn::mapping::seeded_randn;
@@ -201,8 +202,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .with_context(|| format!("loading --checkpoint {}", a.checkpoint().display()))?;
     let camera = loaded.header.camera.clone().unwrap_or_default();
     let latent = loaded.generator.cfg.latent_dim as i64;
-    let poses: Vec<(f64, f64)> =
-        (0..a.views).map(|k| (camera.v_mean, 0.4 + std::f64::consts::TAU * k as f64 / a.views as f64)).collect();
+    let poses = gdrf_core::camera::turntable(camera.v_mean, 0.4, a.views);
     let model = Scene {
         name: "model",
         fields: vec![&loaded.generator; a.seeds.len()],
@@ -270,12 +270,6 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     println!("{md}");
     println!("wrote {}, {} and {}", json_path.display(), png.display(), a.out.join("render.md").display());
     Ok(())
-}
-
-/// PSNR in dB of pixels in [−1, 1] (as [0, 1] images) from their mean squared error.
-fn psnr(a: &Tensor, b: &Tensor) -> f64 {
-    let mse = f64::try_from(((a - b) * 0.5).square().mean(Kind::Double)).unwrap_or(f64::NAN);
-    -10.0 * mse.max(1e-20).log10()
 }
 
 fn max_abs(t: &Tensor) -> f64 {
@@ -389,7 +383,7 @@ fn run_scene<F: RadianceField>(
             "density_queries_per_image": dq as f64 / n_images,
             "colour_queries_per_image": cq as f64 / n_images,
             "grid_queries_per_shape": grid_queries,
-            "psnr_db": psnr(&img.rgb, &dense.rgb),
+            "psnr_db": psnr_all(&img.rgb, &dense.rgb)?,
             "max_abs_error": max_abs(&((&img.rgb - &dense.rgb) * 0.5)),
             "opacity_error": max_abs(&(&img.opacity - &dense.opacity)),
             "peak_rss_mb_so_far": peak_rss_mb(),

@@ -6,7 +6,7 @@ mod swap;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use gdrf_core::camera::Poses;
+use gdrf_core::camera::{turntable, Poses};
 use gdrf_core::checkpoint::{load_generator, Header};
 use gdrf_core::field::generator::{FieldOptions, Generator};
 use gdrf_core::nn::mapping::seeded_randn;
@@ -111,10 +111,11 @@ struct RenderArgs {
     /// elsewhere; it cost 0.7 dB against the dense reference in `gdrf-edit bench`.
     #[arg(long)]
     bf16: bool,
-    /// Density-first: shade only samples whose weight exceeds this (the pixel moves by at
-    /// most this × samples per ray); 0 shades every sample (the reference sampler).
-    #[arg(long, default_value_t = 0.0)]
-    min_weight: f64,
+    /// Density-first (config key `render.shade_min_weight`; `--min-weight` is the same flag):
+    /// shade only samples whose weight exceeds this (the pixel moves by at most this ×
+    /// samples per ray); 0 shades every sample (the reference sampler).
+    #[arg(long, alias = "min-weight", default_value_t = RenderConfig::default().shade_min_weight)]
+    shade_min_weight: f64,
     /// Occupancy grid of this many cells per side, built once per shape seed from the
     /// shape side alone and reused by its views: rays that meet no occupied cell cost one
     /// sample, the others are sampled only between their first and last occupied cell.
@@ -128,25 +129,29 @@ struct RenderArgs {
     /// them count as empty space), not the whole interval from the first to the last.
     #[arg(long)]
     grid_cells: bool,
-    /// Early ray termination: a ray stops once its transmittance falls below this; no
-    /// pixel moves by more than it. 0 = off.
-    #[arg(long, default_value_t = 0.0)]
+    /// Early ray termination (`render.termination`): a ray stops once its transmittance
+    /// falls below this; no pixel moves by more than it. 0 = off.
+    #[arg(long, default_value_t = RenderConfig::default().termination)]
     termination: f64,
     /// Rays whose coarse samples find less than this much light inside the ray get no
-    /// importance samples (their image is then their coarse render). 0 = off.
-    #[arg(long, default_value_t = 0.0)]
-    skip_empty: f64,
+    /// importance samples (their image is then their coarse render). 0 = off. Config key
+    /// `render.importance_skip`; `--skip-empty` is the same flag.
+    #[arg(long, alias = "skip-empty", default_value_t = RenderConfig::default().importance_skip)]
+    importance_skip: f64,
     /// Rays whose coarse weights lie, to at least this fraction, in three neighbouring
     /// intervals (a single sharp surface) evaluate only one importance sample in
-    /// `--thin-stride`. 0 = off.
-    #[arg(long, default_value_t = 0.0)]
-    thin_concentrated: f64,
-    /// One importance sample in this many is kept on concentrated rays.
-    #[arg(long, default_value_t = 4)]
-    thin_stride: usize,
-    /// Samples evaluated at once; bounds memory. 0 = by device: 16 384 on the CPU (small
-    /// chunks are faster there), 1 048 576 on a GPU (fewer kernel launches).
-    #[arg(long, default_value_t = 0)]
+    /// `--importance-stride`. 0 = off. Config key `render.importance_concentration`;
+    /// `--thin-concentrated` is the same flag.
+    #[arg(long, alias = "thin-concentrated", default_value_t = RenderConfig::default().importance_concentration)]
+    importance_concentration: f64,
+    /// One importance sample in this many is kept on concentrated rays (`render.importance_stride`;
+    /// `--thin-stride` is the same flag).
+    #[arg(long, alias = "thin-stride", default_value_t = RenderConfig::default().importance_stride)]
+    importance_stride: usize,
+    /// Samples evaluated at once (`render.chunk_points`); bounds memory. 0 = by device:
+    /// 16 384 on the CPU (small chunks are faster there), 1 048 576 on a GPU (fewer kernel
+    /// launches).
+    #[arg(long, default_value_t = RenderConfig::default().chunk_points)]
     chunk_points: usize,
     /// Output PNG (the grid of images).
     #[arg(long, short, default_value = "render.png")]
@@ -267,11 +272,11 @@ fn render(a: RenderArgs) -> Result<()> {
         jitter: !a.no_jitter,
         force_last_white: a.force_last_white,
         chunk_points: a.chunk_points,
-        shade_min_weight: a.min_weight,
+        shade_min_weight: a.shade_min_weight,
         termination: a.termination,
-        importance_skip: a.skip_empty,
-        importance_concentration: a.thin_concentrated,
-        importance_stride: a.thin_stride,
+        importance_skip: a.importance_skip,
+        importance_concentration: a.importance_concentration,
+        importance_stride: a.importance_stride,
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
@@ -293,9 +298,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let trunc = generator.truncation_at(a.psi);
     let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
 
-    let pitch = a.pitch.map(f64::to_radians).unwrap_or(camera.v_mean);
-    let views: Vec<(f64, f64)> =
-        (0..a.views).map(|k| (pitch, (a.yaw + 360.0 * k as f64 / a.views as f64).to_radians())).collect();
+    let views = turntable(a.pitch.map(f64::to_radians).unwrap_or(camera.v_mean), a.yaw.to_radians(), a.views);
     let total = a.seeds.len() * a.views;
     let bar = ProgressBar::new(total as u64).with_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} images, {elapsed} elapsed, eta {eta}")
@@ -338,11 +341,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let img = io::to_rgb8(&io::grid(&rgb, cols), false)?;
     io::save_png(&a.out, &img).with_context(|| format!("writing --out {}", a.out.display()))?;
     if let Some(p) = &a.depth_out {
-        let d = Tensor::cat(&depth, 0);
-        // Near = white, far = black, over the camera's ray range.
-        let (near, far) = (camera.ray_start, camera.ray_end);
-        let d = ((d - far) / (near - far)).clamp(0.0, 1.0) * 2.0 - 1.0;
-        let d = io::grid(&d.expand([-1, 3, -1, -1], false), cols);
+        let d = io::grid(&io::depth_map(&Tensor::cat(&depth, 0), camera.ray_start, camera.ray_end), cols);
         io::save_png(p, &io::to_rgb8(&d, false)?).with_context(|| format!("writing --depth-out {}", p.display()))?;
     }
     let samples = total as f64 * (resolution * resolution) as f64 * config.samples_per_ray() as f64;
@@ -370,6 +369,35 @@ mod tests {
             _ => unreachable!("parsed as render"),
         };
         assert_eq!((steps("--steps"), steps("--samples")), (Some(8), Some(8)));
+    }
+
+    #[test]
+    fn renderer_flags_are_named_as_their_config_keys_and_keep_their_old_names() {
+        let render =
+            |args: &[&str]| match Cli::try_parse_from([&["gdrf-edit", "render"][..], args].concat()).unwrap().command {
+                Some(Command::Render(a)) => a,
+                _ => unreachable!("parsed as render"),
+            };
+        let d = RenderConfig::default();
+        let a = render(&[]);
+        assert_eq!(
+            (a.shade_min_weight, a.importance_skip, a.importance_concentration, a.importance_stride, a.chunk_points),
+            (d.shade_min_weight, d.importance_skip, d.importance_concentration, d.importance_stride, d.chunk_points)
+        );
+        for (new, old) in [
+            ("--shade-min-weight", "--min-weight"),
+            ("--importance-skip", "--skip-empty"),
+            ("--importance-concentration", "--thin-concentrated"),
+        ] {
+            let get = |flag: &str| {
+                let a = render(&[flag, "0.25"]);
+                (a.shade_min_weight, a.importance_skip, a.importance_concentration)
+            };
+            assert_eq!(get(new), get(old), "{new} and {old}");
+            assert_ne!(get(new), get("--termination"), "{new} sets something");
+        }
+        assert_eq!(render(&["--importance-stride", "3"]).importance_stride, 3);
+        assert_eq!(render(&["--thin-stride", "3"]).importance_stride, 3);
     }
 
     #[test]

@@ -5,12 +5,12 @@
 use crate::{load_model, Model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use gdrf_core::camera::{Poses, Rays};
+use gdrf_core::camera::{release_ellipse, turntable, Poses, Rays};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
-use gdrf_core::{device, io, CameraConfig, Latents, PoseDistribution, RenderConfig};
+use gdrf_core::{device, io, CameraConfig, Latents, RenderConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{Kind, Tensor};
@@ -143,23 +143,9 @@ impl ViewArgs {
     /// cameras, as the release does).
     fn poses(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
         if self.ellipse {
-            let n = self.views.max(2);
-            return (0..self.views)
-                .map(|k| {
-                    let t = std::f64::consts::TAU * k as f64 / (n - 1) as f64;
-                    let v = cam.v_mean + cam.v_std * t.sin();
-                    let pitch = match cam.distribution {
-                        PoseDistribution::SphericalUniform => {
-                            (1.0 - 2.0 * v / std::f64::consts::PI).clamp(-1.0, 1.0).acos()
-                        }
-                        _ => v,
-                    };
-                    (pitch, cam.h_mean + cam.h_std * t.cos())
-                })
-                .collect();
+            return release_ellipse(cam, self.views);
         }
-        let pitch = self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean);
-        (0..self.views).map(|k| (pitch, (self.yaw + 360.0 * k as f64 / self.views as f64).to_radians())).collect()
+        turntable(self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean), self.yaw.to_radians(), self.views)
     }
 
     fn render_config(&self) -> RenderConfig {
@@ -325,9 +311,8 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;
         if a.maps {
-            let (near, far) = (model.camera.ray_start, model.camera.ray_end);
-            let depth = (img.depth.get(0) - near) / (far - near);
-            io::save_png(&a.out.join(format!("depth-{k:03}.png")), &io::to_rgb8(&io::colormap(&depth), false)?)?;
+            let depth = io::depth_map(&img.depth.get(0), model.camera.ray_start, model.camera.ray_end);
+            io::save_png(&a.out.join(format!("depth-{k:03}.png")), &io::to_rgb8(&depth, false)?)?;
             io::save_png(
                 &a.out.join(format!("opacity-{k:03}.png")),
                 &io::to_rgb8(&io::colormap(&img.opacity.get(0)), false)?,
@@ -595,7 +580,7 @@ mod tests {
 
     fn small() -> (nn::VarStore, Generator) {
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let cfg = GeneratorConfig::tiny();
         // A deformation head with weights, so that shapes differ.
         let g = gdrf_core::rng::with_global_seed(5, || {
             let mut g = Generator::new(&vs.root(), &cfg).unwrap();

@@ -1,7 +1,7 @@
 //! gdrf-edit as a user first meets it: the swap without a subcommand, the shipped model
 //! rendered where it learned by default, and exit codes (usage 2, runtime 1) whose
 //! messages name the bad flag or file.
-#[path = "../../tests/common/mod.rs"]
+#[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
 use common::TempDir;
@@ -22,7 +22,7 @@ fn size(png: &Path) -> (u32, u32) {
 
 #[test]
 fn the_swap_needs_no_subcommand_and_renders_the_shipped_model_where_it_learned() {
-    let dir = TempDir::new("edit-cli-swap");
+    let dir = TempDir::new("edit-cli-swap").unwrap();
     let (plain, sub) = (dir.path("plain"), dir.path("sub"));
     let swap = ["--shape-from", "seed:0", "--appearance-from", "seed:1", "--views", "2", "--device", "cpu"];
     let o = gdrf_edit(&[&swap[..], &["--out", plain.to_str().unwrap()]].concat());
@@ -52,7 +52,7 @@ fn the_swap_needs_no_subcommand_and_renders_the_shipped_model_where_it_learned()
 
 #[test]
 fn a_random_generator_comes_only_from_its_flag() {
-    let dir = TempDir::new("edit-cli-random");
+    let dir = TempDir::new("edit-cli-random").unwrap();
     let out = dir.path("random");
     let o = gdrf_edit(&[
         "--shape-from",
@@ -79,7 +79,7 @@ fn a_random_generator_comes_only_from_its_flag() {
 
 #[test]
 fn usage_errors_exit_2_and_runtime_errors_exit_1_naming_what_is_wrong() {
-    let dir = TempDir::new("edit-cli-errors");
+    let dir = TempDir::new("edit-cli-errors").unwrap();
     let out = dir.path("out");
     let out = out.to_str().unwrap();
     // Half a swap.

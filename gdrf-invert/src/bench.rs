@@ -11,7 +11,7 @@ use gdrf_core::eval::fidelity::{psnr, ssim};
 use gdrf_core::eval::probe::{structure_classes, Probe};
 use gdrf_core::invert::init::Initialiser;
 use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{load_effnet, render_views, InvertConfig, Inverter, Perceptual, Start};
+use gdrf_core::invert::{load_effnet, render_views, start_for_photo, InvertConfig, Inverter, Perceptual};
 use gdrf_core::plot::{draw_panels, Panel, Series};
 use gdrf_core::pretrained::effnet::EfficientNetLite0;
 use gdrf_core::{CameraConfig, Generator};
@@ -62,6 +62,7 @@ pub struct BenchArgs {
     /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
     #[arg(long, default_value = "docs/bench/invert")]
     out: PathBuf,
+    /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     device: String,
 }
@@ -256,20 +257,17 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         let mut sums = vec![[0.0f64; 7]; checkpoints.len()];
         for case in &cases {
             let t0 = std::time::Instant::now();
-            let start = match (use_init, &init) {
-                (true, Some(f)) => {
-                    let (w, p) = f.predict(&case.photo)?;
-                    let err = ((p.0 - case.pose.0).abs().to_degrees(), {
-                        let d = p.1 - case.pose.1;
-                        d.sin().atan2(d.cos()).abs().to_degrees()
-                    });
-                    if pose_errors.len() < cases.len() {
-                        pose_errors.push(err);
-                    }
-                    Start::with_mean_appearance(g, w, case.pose, 10_000)
+            // At the known pose; the initialiser's own estimate of it is only scored.
+            let init = if *use_init { init.as_ref() } else { None };
+            let started = start_for_photo(g, &cam, &case.photo, Some(case.pose), init)?;
+            let start = started.start;
+            if let Some(p) = started.predicted_pose {
+                let d = p.1 - case.pose.1;
+                let err = ((p.0 - case.pose.0).abs().to_degrees(), d.sin().atan2(d.cos()).abs().to_degrees());
+                if pose_errors.len() < cases.len() {
+                    pose_errors.push(err);
                 }
-                _ => Start::mean(g, case.pose, 10_000),
-            };
+            }
             let start_seconds = t0.elapsed().as_secs_f64();
             let mut inv = Inverter::new(g, &cam, &case.photo, &start, cfg, Some(&perc))?;
             let mut last = (0usize, 0.0f64);

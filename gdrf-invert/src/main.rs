@@ -7,13 +7,15 @@ use clap::Parser;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::device;
 use gdrf_core::edit::generator_id;
+use gdrf_core::eval::fidelity::psnr_all;
 use gdrf_core::invert::init::{self as init_stage, InitConfig, Initialiser};
 use gdrf_core::invert::photo::{load_photo, Fit};
 use gdrf_core::invert::{
-    invert, load_effnet, parse_pose_degrees, render_views, InvertConfig, Perceptual, Start, StepLog,
+    invert, load_effnet, loss_panels, parse_pose_degrees, render_orbit, render_views, start_for_photo, InvertConfig,
+    Perceptual, PhotoStart, PoseFrom, StepLog,
 };
 use gdrf_core::io::{save_gif, save_png, to_rgb8};
-use gdrf_core::plot::{draw_panels, Panel, Series};
+use gdrf_core::plot::draw_panels;
 use gdrf_core::pretrained::lpips::{Lpips, LpipsNet};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -283,18 +285,21 @@ fn run(a: InvertArgs) -> Result<()> {
         .transpose()?;
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
 
-    let predicted = init.as_ref().map(|f| f.predict(&photo)).transpose()?;
-    if let Some((_, p)) = &predicted {
+    let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, init.as_ref())?;
+    let pose = start.pose;
+    if let Some(p) = predicted_pose {
         eprintln!("the initialiser's pose: pitch {:.1}°, yaw {:.1}°", p.0.to_degrees(), p.1.to_degrees());
     }
-    let pose = pose.or(predicted.as_ref().map(|p| p.1)).unwrap_or_else(|| {
+    if pose_from == PoseFrom::CameraMean {
         eprintln!(
             "no --pose: using the camera's mean pose (pitch {:.1}°, yaw {:.1}°)",
-            cam.v_mean.to_degrees(),
-            cam.h_mean.to_degrees()
+            pose.0.to_degrees(),
+            pose.1.to_degrees()
         );
-        (cam.v_mean, cam.h_mean)
-    });
+    }
+    if init.is_none() {
+        eprintln!("no --init: w_s starts at the mean code's (gdrf-invert train-init trains an initialiser)");
+    }
     let effnet;
     let lpips;
     let perc = match a.perceptual.as_str() {
@@ -325,13 +330,6 @@ fn run(a: InvertArgs) -> Result<()> {
         samples,
         a.steps
     );
-    let start = match predicted {
-        Some((w, _)) => Start::with_mean_appearance(g, w, pose, 10_000),
-        None => {
-            eprintln!("no --init: w_s starts at the mean code's (gdrf-invert train-init trains an initialiser)");
-            Start::mean(g, pose, 10_000)
-        }
-    };
     let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
@@ -375,41 +373,19 @@ fn run(a: InvertArgs) -> Result<()> {
     save_png(&a.out.join("reconstruction.png"), &to_rgb8(&recon.get(0), false)?)?;
     let compare = Tensor::cat(&[input.get(0), start_img.get(0), recon.get(0)], 2);
     save_png(&a.out.join("compare.png"), &to_rgb8(&compare, false)?)?;
-    let recon_mse = f64::try_from((&recon - &input).square().mean(Kind::Float))?;
-    let psnr = 10.0 * (4.0 / recon_mse.max(1e-12)).log10();
+    let psnr = psnr_all(&recon, &input)?;
     if a.orbit > 0 {
-        let poses: Vec<(f64, f64)> =
-            (0..a.orbit).map(|k| (pose.0, pose.1 + std::f64::consts::TAU * k as f64 / a.orbit as f64)).collect();
+        let views = render_orbit(g, &cam, &inv.features, pose, a.orbit, view_res, view_samples)?;
         let dir = a.out.join("orbit");
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        let mut frames = Vec::with_capacity(poses.len());
-        for chunk in poses.chunks(8) {
-            let imgs = view(&inv.features, chunk)?;
-            for i in 0..chunk.len() as i64 {
-                let f = to_rgb8(&imgs.get(i), false)?;
-                save_png(&dir.join(format!("frame-{:03}.png", frames.len())), &f)?;
-                frames.push(f);
-            }
+        let frames =
+            (0..a.orbit as i64).map(|i| to_rgb8(&views.get(i), false)).collect::<gdrf_core::Result<Vec<_>>>()?;
+        for (i, f) in frames.iter().enumerate() {
+            save_png(&dir.join(format!("frame-{i:03}.png")), f)?;
         }
         save_gif(&a.out.join("orbit.gif"), &frames, 80)?;
     }
-    let series = |name: &str, f: &dyn Fn(&StepLog) -> f64| Series {
-        name: name.to_string(),
-        points: inv.history.iter().map(|l| (l.step as f64, f(l))).collect(),
-    };
-    let panels = [
-        Panel { title: "loss".into(), series: vec![series("total", &|l| l.loss)], log_y: true },
-        Panel {
-            title: "terms".into(),
-            series: vec![
-                series("mse", &|l| l.mse),
-                series("perceptual", &|l| l.perceptual),
-                series("prior", &|l| l.prior),
-            ],
-            log_y: true,
-        },
-    ];
-    save_png(&a.out.join("loss.png"), &draw_panels(&panels, 2, 360, 240))?;
+    save_png(&a.out.join("loss.png"), &draw_panels(&loss_panels(&inv.history), 2, 360, 240))?;
     let report = serde_json::json!({
         "photo": photo_path.display().to_string(),
         "init": a.init.as_ref().map(|p| p.display().to_string()),

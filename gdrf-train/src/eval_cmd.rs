@@ -4,8 +4,9 @@
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use gdrf_core::data::Split;
+use gdrf_core::eval::evaluator::{self, EvalOptions, FeatureKind};
 use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
-use gdrf_core::eval::report::{self, EvalOptions, FeatureKind};
+use gdrf_core::eval::report;
 use gdrf_core::eval::seeds;
 use gdrf_core::pretrained::effnet::EfficientNetLite0;
 use std::path::PathBuf;
@@ -247,7 +248,8 @@ fn run(a: RunArgs) -> Result<()> {
         pb.set_message(stage.to_string());
     };
     if !a.seeds.is_empty() {
-        let results = report::evaluate_seeds(generator, dataset, probe_path, &opts, &a.seeds, device, &mut progress)?;
+        let results =
+            evaluator::evaluate_seeds(generator, dataset, probe_path, &opts, &a.seeds, device, &mut progress)?;
         pb.finish_and_clear();
         let spread = seeds::summarise(&results)?;
         seeds::write_all(&out, &results, &spread)?;
@@ -259,7 +261,7 @@ fn run(a: RunArgs) -> Result<()> {
         );
         return Ok(());
     }
-    let result = report::evaluate(generator, dataset, probe_path, &opts, device, &mut progress)?;
+    let result = evaluator::evaluate(generator, dataset, probe_path, &opts, device, &mut progress)?;
     pb.finish_and_clear();
     report::write(&out, &result)?;
     print!("{}", report::summary(&result));

@@ -119,16 +119,16 @@ struct SynthArgs {
     #[arg(long)]
     out: PathBuf,
     /// Dataset seed: the same seed and options give byte-identical images.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = SynthOptions::default().seed)]
     seed: u64,
     /// Antialiasing: K × K samples per pixel.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = SynthOptions::default().supersample)]
     supersample: usize,
     /// Views rendered of each object.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = SynthOptions::default().views_per_object)]
     views_per_object: usize,
     /// Fraction of objects held out of training (all their views).
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = SynthOptions::default().held_out_fraction)]
     held_out: f64,
     /// Turn off soft shadows (faster).
     #[arg(long)]
@@ -222,23 +222,27 @@ struct PrepareArgs {
 
 fn main() {
     let cli = Cli::parse();
+    let usage = |message: &str| {
+        eprintln!("error: {message}");
+        std::process::exit(2);
+    };
     let result = match cli.command {
-        Some(_) if cli.train.any() => Err(anyhow::anyhow!(
-            "--config, --resume and --print-config start or inspect training; they cannot be combined with a subcommand"
-        )),
+        Some(_) if cli.train.any() => usage(
+            "--config, --resume and --print-config start or inspect training; they cannot be combined with a subcommand",
+        ),
         Some(Command::Dataset(cmd)) => dataset(cmd),
         Some(Command::Plot(a)) => plot_cmd::plot(a),
         Some(Command::Eval(a)) => eval_cmd::eval(*a),
         Some(Command::Interpolate(a)) => interpolate_cmd(a),
         Some(Command::Ship(a)) => ship_cmd(a),
         None if cli.train.any() => train_cmd::train(cli.train),
-        None => Err(anyhow::anyhow!(
-            "nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"
-        )),
+        None => usage("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"),
     };
+    // Usage errors exit 2 (clap's, and the two above); everything found later exits 1, as
+    // in gdrf-edit and gdrf-invert.
     if let Err(e) = result {
         eprintln!("error: {e:#}");
-        std::process::exit(2);
+        std::process::exit(1);
     }
 }
 

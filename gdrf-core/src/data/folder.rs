@@ -19,7 +19,7 @@ pub fn is_image(path: &Path) -> bool {
 
 /// Image files directly inside `dir` (not in subfolders), sorted by name.
 pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
-    let io = |source| Error::Io { path: dir.to_path_buf(), source };
+    let io = |source| Error::Io { path: dir.to_path_buf(), err: source };
     let mut out = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(io)? {
         let path = entry.map_err(io)?.path();

@@ -269,7 +269,7 @@ fn list_carla(dir: &Path, opts: &ListOptions, listing: &mut Listing, problems: &
         let npy_path = pose_dir.join(format!("{stem}_extrinsics.npy"));
         let pose = match npy::read_matrix(&npy_path) {
             Ok(m) => carla_pose(&m).map_err(|reason| Error::Data { path: npy_path.clone(), reason }),
-            Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound => Err(Error::Data {
+            Err(Error::Io { err, .. }) if err.kind() == std::io::ErrorKind::NotFound => Err(Error::Data {
                 path: f.clone(),
                 reason: format!("image has no pose ({} is missing)", npy_path.display()),
             }),

@@ -51,7 +51,7 @@ pub struct Metadata {
 impl Metadata {
     pub fn load(dir: &Path) -> Result<Self> {
         let path = dir.join(METADATA_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), err: source })?;
         let meta: Metadata = serde_json::from_str(&text).map_err(|e| Error::Data {
             path: path.clone(),
             reason: format!("not a gdrf synthetic dataset description: {e}"),
@@ -417,7 +417,7 @@ fn write_cache(
     let bytes = safetensors::tensor::serialize([("pixels", view)], Some(meta))
         .map_err(|e| Error::Invalid(format!("cache serialisation: {e}")))?;
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+        std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), err: source })?;
     }
     write_atomic(path, &bytes)
 }

@@ -8,7 +8,7 @@ use std::path::Path;
 pub type Matrix3x4 = [[f64; 4]; 3];
 
 pub fn read_matrix(path: &Path) -> Result<Matrix3x4> {
-    let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| Error::Io { path: path.to_path_buf(), err: source })?;
     parse_matrix(&bytes).map_err(|reason| Error::Data { path: path.to_path_buf(), reason })
 }
 

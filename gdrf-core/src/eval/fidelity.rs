@@ -22,11 +22,27 @@ fn check(a: &Tensor, b: &Tensor, what: &str) -> Result<()> {
     Ok(())
 }
 
-/// `(B,)` PSNR in dB, 10·log10(1 / MSE) on [0, 1] (MSE floored at 1e-10, i.e. 100 dB).
+/// The floor of every PSNR's mean squared error on [0, 1]: identical images score 100 dB.
+pub const MSE_FLOOR: f64 = 1e-10;
+
+/// `(B,)` PSNR in dB, 10·log10(1 / MSE) on [0, 1] (MSE floored at [`MSE_FLOOR`]).
 pub fn psnr(a: &Tensor, b: &Tensor) -> Result<Tensor> {
     check(a, b, "PSNR")?;
     let mse = ((a - b) / 2.0).to_kind(Kind::Double).square().mean_dim([1i64, 2, 3].as_slice(), false, Kind::Double);
-    Ok(mse.clamp_min(1e-10).log10() * -10.0)
+    Ok(mse.clamp_min(MSE_FLOOR).log10() * -10.0)
+}
+
+/// PSNR in dB of a mean squared error on [0, 1] (floored at [`MSE_FLOOR`]).
+pub fn psnr_of_mse(mse: f64) -> f64 {
+    -10.0 * mse.max(MSE_FLOOR).log10()
+}
+
+/// One PSNR over every pixel of `a` against `b` (same shape, in [−1, 1], compared on [0, 1]).
+pub fn psnr_all(a: &Tensor, b: &Tensor) -> Result<f64> {
+    if a.size() != b.size() {
+        return Err(Error::Invalid(format!("PSNR of images of shapes {:?} and {:?}", a.size(), b.size())));
+    }
+    Ok(psnr_of_mse(f64::try_from(((a - b) * 0.5).square().mean(Kind::Double))?))
 }
 
 /// `(B,)` SSIM (see the module's documentation).

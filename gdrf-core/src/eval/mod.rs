@@ -2,7 +2,10 @@
 //! ([`crate::pretrained`]), topology coverage and disentanglement from a probe trained on the
 //! procedural dataset's ground truth, pose consistency, and the one-page report.
 pub mod distance;
+pub mod evaluator;
 pub mod fidelity;
+pub mod metrics;
 pub mod probe;
+pub mod provenance;
 pub mod report;
 pub mod seeds;

@@ -1,10 +1,11 @@
-//! One evaluation over several seeds ([`super::report::evaluate_seeds`]): each seed draws
+//! One evaluation over several seeds ([`super::evaluator::evaluate_seeds`]): each seed draws
 //! other codes, poses and another random-weight generator, so the random end moves between
 //! seeds about as much as a model near the middle of the scale stands from it. This puts
 //! each score's per-seed values side by side, with their means, the position of the means
 //! and the worst position, so that "nearer the real end" can be judged over draws rather
 //! than on one.
-use super::report::{score_rows, truncation_note, write, Calibrated, EvalResult};
+use super::evaluator::{Calibrated, EvalResult};
+use super::report::{score_rows, truncation_note, write};
 use crate::paths::write_atomic;
 use crate::{Error, Result};
 use serde::Serialize;

@@ -431,7 +431,7 @@ mod tests {
     fn small() -> (nn::VarStore, Generator) {
         tch::manual_seed(2);
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let cfg = GeneratorConfig::tiny();
         let g = Generator::new(&vs.root(), &cfg).unwrap();
         (vs, g)
     }

@@ -25,7 +25,7 @@ pub mod photo;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::edit::Features;
-use crate::field::generator::Generator;
+use crate::field::generator::{Generator, TRUNCATION_MEAN_CODES};
 use crate::io::resize;
 use crate::nn::film::Film;
 use crate::pretrained::effnet::EfficientNetLite0;
@@ -548,11 +548,53 @@ pub fn invert(
     Inverter::new(g, camera, photo, start, cfg, perceptual)?.run(progress)
 }
 
+/// Where the pose of an inversion came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseFrom {
+    /// Given by the caller (`--pose`).
+    Given,
+    /// The initialiser's prediction.
+    Initialiser,
+    /// Neither: the camera's mean pose.
+    CameraMean,
+}
+
+/// Where an inversion of a photo starts ([`start_for_photo`]).
+pub struct PhotoStart {
+    pub start: Start,
+    /// Where `start.pose` came from.
+    pub pose_from: PoseFrom,
+    /// The initialiser's estimate of the photo's pose, when it was given one.
+    pub predicted_pose: Option<(f64, f64)>,
+}
+
+/// The start of an inversion of `photo: (1, 3, R, R)`: from the initialiser's prediction of
+/// w_s when `init` is given (with the mean appearance), else the mean code's features; at
+/// `pose` when given, else the initialiser's, else the camera's mean pose.
+pub fn start_for_photo(
+    g: &Generator,
+    camera: &CameraConfig,
+    photo: &Tensor,
+    pose: Option<(f64, f64)>,
+    init: Option<&init::Initialiser>,
+) -> Result<PhotoStart> {
+    let predicted = init.map(|f| f.predict(photo)).transpose()?;
+    let (pose, from) = match (pose, &predicted) {
+        (Some(p), _) => (p, PoseFrom::Given),
+        (None, Some((_, p))) => (*p, PoseFrom::Initialiser),
+        (None, None) => ((camera.v_mean, camera.h_mean), PoseFrom::CameraMean),
+    };
+    let predicted_pose = predicted.as_ref().map(|p| p.1);
+    let start = match predicted {
+        Some((w, _)) => Start::with_mean_appearance(g, w, pose, TRUNCATION_MEAN_CODES),
+        None => Start::mean(g, pose, TRUNCATION_MEAN_CODES),
+    };
+    Ok(PhotoStart { start, pose_from: from, predicted_pose })
+}
+
 /// A photo file as an editing source: loaded (centre-cropped, on white), inverted with `cfg`
-/// from the initialiser's start when `init` is given (else the mean code's), at `pose` when
-/// given (else the initialiser's, else the camera's mean pose), with the EfficientNet-Lite0
-/// perceptual distance when `cfg.perceptual_weight` is not 0. Returns the features and the
-/// pose used.
+/// from [`start_for_photo`]'s start, with the EfficientNet-Lite0 perceptual distance when
+/// `cfg.perceptual_weight` is not 0. Returns the features.
 pub fn features_of_photo(
     g: &Generator,
     camera: &CameraConfig,
@@ -565,12 +607,7 @@ pub fn features_of_photo(
     let (_, device) = g.kind_device();
     let photo = photo::load_photo(path, None, photo::Fit::Crop, cfg.resolution, device)?;
     let init = init.map(|p| init::Initialiser::load(p, generator_id, device)).transpose()?;
-    let predicted = init.as_ref().map(|f| f.predict(&photo)).transpose()?;
-    let pose = pose.or(predicted.as_ref().map(|p| p.1)).unwrap_or((camera.v_mean, camera.h_mean));
-    let start = match predicted {
-        Some((w, _)) => Start::with_mean_appearance(g, w, pose, 10_000),
-        None => Start::mean(g, pose, 10_000),
-    };
+    let start = start_for_photo(g, camera, &photo, pose, init.as_ref())?.start;
     let net;
     let perceptual = if cfg.perceptual_weight > 0.0 {
         net = load_effnet(device)?;
@@ -579,6 +616,44 @@ pub fn features_of_photo(
         None
     };
     Ok(invert(g, camera, &photo, &start, cfg, perceptual.as_ref(), &mut |_| {})?.features)
+}
+
+/// The features `f` on a turntable of `n` views from `pose` (radians), `(n, 3, res, res)`
+/// in [−1, 1], rendered as [`render_views`] does, eight views at a time.
+pub fn render_orbit(
+    g: &Generator,
+    camera: &CameraConfig,
+    f: &Features,
+    pose: (f64, f64),
+    n: usize,
+    res: i64,
+    samples: usize,
+) -> Result<Tensor> {
+    let poses = crate::camera::turntable(pose.0, pose.1, n);
+    let views = poses.chunks(8).map(|c| render_views(g, camera, f, c, res, samples)).collect::<Result<Vec<_>>>()?;
+    Ok(Tensor::cat(&views, 0))
+}
+
+/// The loss curve of an inversion: the total, and its terms (MSE, perceptual, priors), on
+/// log axes.
+pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
+    use crate::plot::{Panel, Series};
+    let series = |name: &str, f: &dyn Fn(&StepLog) -> f64| Series {
+        name: name.to_string(),
+        points: history.iter().map(|l| (l.step as f64, f(l))).collect(),
+    };
+    vec![
+        Panel { title: "loss".into(), series: vec![series("total", &|l| l.loss)], log_y: true },
+        Panel {
+            title: "terms".into(),
+            series: vec![
+                series("mse", &|l| l.mse),
+                series("perceptual", &|l| l.perceptual),
+                series("prior", &|l| l.prior),
+            ],
+            log_y: true,
+        },
+    ]
 }
 
 /// A pose given as `PITCH,YAW` in degrees (pitch from +y, the command-line convention of

@@ -6,7 +6,7 @@ use tch::{nn, Device};
 fn small() -> (nn::VarStore, Generator) {
     tch::manual_seed(3);
     let vs = nn::VarStore::new(Device::Cpu);
-    let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+    let cfg = GeneratorConfig::tiny();
     let g = Generator::new(&vs.root(), &cfg).unwrap();
     // A fresh deformation head is zero (the release's start), so the shape would not
     // depend on w_s at all; a trained generator's does.

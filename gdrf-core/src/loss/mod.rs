@@ -6,6 +6,7 @@
 //! gradients (the two-pass patch step differentiates the image, then each band).
 // `t = t + x` on purpose: `+=` on a Tensor is an in-place add on a tensor autograd saved.
 #![allow(clippy::assign_op_pattern)]
+pub mod coverage;
 pub mod deform_reg;
 pub mod gan;
 

@@ -20,7 +20,7 @@ impl Weights {
         if !path.is_file() {
             return Err(Error::Io {
                 path: path.to_path_buf(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "weights file not found"),
+                err: std::io::Error::new(std::io::ErrorKind::NotFound, "weights file not found"),
             });
         }
         let list = Tensor::read_safetensors(path).map_err(|e| Error::NotACheckpoint {

@@ -701,7 +701,7 @@ mod tests {
     fn render_at_depths_reproduces_the_render() {
         tch::manual_seed(3);
         let mut vs = nn::VarStore::new(Device::Cpu);
-        let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let cfg = GeneratorConfig::tiny();
         let g = Generator::new(&vs.root(), &cfg).unwrap();
         vs.double();
         let cam = CameraConfig::chair();
@@ -725,7 +725,7 @@ mod tests {
     fn bfloat16_networks_render_close_to_float32() {
         tch::manual_seed(4);
         let vs = nn::VarStore::new(Device::Cpu);
-        let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 32, mapping_hidden_dim: 16, ..Default::default() };
+        let cfg = GeneratorConfig { hidden_dim: 32, ..GeneratorConfig::tiny() };
         let g = Generator::new(&vs.root(), &cfg).unwrap();
         let cam = CameraConfig::chair();
         let rc = RenderConfig { num_steps: 8, jitter: false, ..Default::default() };

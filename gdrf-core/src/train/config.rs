@@ -314,10 +314,10 @@ impl TrainConfig {
 
     /// Reads, parses and validates a config file; errors name the file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.into(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.into(), err: source })?;
         // Absolute, so that a run resumes from any working directory. The file's path is made
         // absolute before taking its folder: a bare `x.toml` has the empty path as parent.
-        let file = std::path::absolute(path).map_err(|source| Error::Io { path: path.into(), source })?;
+        let file = std::path::absolute(path).map_err(|source| Error::Io { path: path.into(), err: source })?;
         let base = file.parent().unwrap_or(Path::new("/")).to_path_buf();
         Self::from_toml(&text, &base).map_err(|e| match e {
             Error::Config(m) => Error::Config(format!("{}: {m}", path.display())),

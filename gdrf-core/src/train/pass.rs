@@ -3,10 +3,12 @@
 use crate::camera::Poses;
 use crate::disc::Judge;
 use crate::loss::deform_reg::{regularisers, select_samples};
-use crate::loss::{discriminator_loss, generator_loss, LossConfig, Losses, Schedule};
+use crate::loss::{
+    discriminator_loss, generator_image_terms, generator_loss, generator_regularisation, LossConfig, Losses, Schedule,
+};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::{Generator, Latents, Result};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 /// A batch of generated images: what drives it and how it is seen.
 pub struct FakeBatch<'a> {
@@ -93,4 +95,57 @@ pub fn discriminator_judgement(
     let dr = disc.judge(&real, at.alpha)?;
     let df = disc.judge(&fakes.detach(), at.alpha)?;
     discriminator_loss(&dr, &real, real_poses, &df, &fake_poses.stacked(), z, at, cfg)
+}
+
+/// The release's two-pass patch step for one chunk of the generator's batch (codes `z`,
+/// drawn at `poses` with `noise`): render without gradients, take the judge's gradient with
+/// respect to the image alone, then re-render each of `regions` bands with gradients at the
+/// very sample depths of the first pass and backpropagate its slice of that gradient; the
+/// regularisers likewise. Leaves `1/split` of the chunk's gradient (times `fault`: NaN to
+/// inject a non-finite step) in the generator and returns the chunk's losses.
+#[allow(clippy::too_many_arguments)]
+pub fn patch_gradients(
+    renderer: &Renderer,
+    judge: &dyn Judge,
+    (z, poses, noise): (&Tensor, &Poses, &Noise),
+    (res, regions): (i64, i64),
+    reg_rays: &Tensor,
+    at: Schedule,
+    cfg: &LossConfig,
+    (split, fault): (f64, f64),
+) -> Result<Losses> {
+    let gen = renderer.generator;
+    let target = poses.stacked();
+    // The release's two-pass patch step: render without gradients, take D's gradient
+    // w.r.t. the image alone, then re-render each band with gradients at the very
+    // sample depths of the first pass and backpropagate its slice of that gradient.
+    let (img, parts) = tch::no_grad(|| {
+        let lat = gen.latents(z, z, None);
+        renderer.render_regions(&lat, poses, res, regions, noise)
+    })?;
+    let img = img.detach().set_requires_grad(true);
+    let d = judge.judge(&img, at.alpha)?;
+    let mut adv = generator_image_terms(&d, &img, &target, Some(z), at, cfg)?;
+    adv.total = adv.total.g_mul_scalar(fault);
+    let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
+    // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.
+    let b = g_img.size()[0];
+    let g_rays = g_img.reshape([b, 3, res * res]).permute([0, 2, 1]) * 2.0;
+    let rays = renderer.region_rays(poses, res, regions)?;
+    let len = res * res / regions;
+    for (k, (part, ray)) in parts.iter().zip(&rays).enumerate() {
+        // Fresh latents per band: each backward frees its own graph.
+        let lat = gen.latents(z, z, None);
+        let rr = renderer.render_at_depths(&lat, ray, &part.z)?;
+        (&rr.pixel * g_rays.narrow(1, k as i64 * len, len)).sum(Kind::Float).backward();
+    }
+    let lat = gen.latents(z, z, None);
+    let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
+    let reg = generator_regularisation(
+        regularisers(gen, &lat.shape, &samples, cfg.reg.variant),
+        &cfg.reg,
+        cfg.reg_scale(at.step),
+    );
+    (&reg.total / split).backward();
+    Ok(adv.merge(reg))
 }

@@ -21,7 +21,7 @@ pub const GENERATOR: &str = "generator.safetensors";
 pub const SAMPLES: &str = "samples";
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
-    move |source| Error::Io { path: path.to_path_buf(), source }
+    move |source| Error::Io { path: path.to_path_buf(), err: source }
 }
 
 pub const LOCK: &str = ".lock";
@@ -112,12 +112,12 @@ pub fn prune_checkpoints(run_dir: &Path, keep: usize) -> Result<()> {
 }
 
 /// Appends one JSON line to metrics.jsonl (a whole line per write, flushed).
-pub fn append_metrics(run_dir: &Path, line: &serde_json::Value) -> Result<()> {
+pub fn append_metrics<T: serde::Serialize>(run_dir: &Path, line: &T) -> Result<()> {
     append_jsonl(&run_dir.join(METRICS), line)
 }
 
 /// Appends one JSON line to the file at `path` (a whole line per write, flushed).
-pub fn append_jsonl(path: &Path, line: &serde_json::Value) -> Result<()> {
+pub fn append_jsonl<T: serde::Serialize>(path: &Path, line: &T) -> Result<()> {
     let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
     let mut text = serde_json::to_string(line).map_err(|e| Error::Invalid(e.to_string()))?;
     text.push('\n');

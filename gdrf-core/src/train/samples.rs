@@ -90,7 +90,7 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
 pub fn write_previews(t: &Trainer) -> Result<Vec<PathBuf>> {
     let p = render_previews(t)?;
     let dir = t.run_dir.join(super::run::SAMPLES);
-    std::fs::create_dir_all(&dir).map_err(|source| crate::Error::Io { path: dir.clone(), source })?;
+    std::fs::create_dir_all(&dir).map_err(|source| crate::Error::Io { path: dir.clone(), err: source })?;
     let tag = format!("step-{:08}", t.progress.step);
     let mut out = Vec::new();
     for (name, imgs, cols) in

@@ -9,6 +9,7 @@ use gdrf_core::data::synth::SynthOptions;
 use gdrf_core::data::SplitChoice;
 use gdrf_core::disc::Discriminator;
 use gdrf_core::loss::{LossConfig, Schedule};
+use gdrf_core::paths::TempDir;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::train::config::Precision;
 use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch, TrainConfig, Trainer};
@@ -182,25 +183,6 @@ fn bench_losses(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> R
         "samples_s": t,
         "peak_rss_mb": peak_rss_mb(),
     }))
-}
-
-/// A folder under the system's temp dir, removed (best effort) when dropped.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(prefix: &str) -> Result<Self> {
-        let nanos =
-            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
-        let dir = std::env::temp_dir().join(format!("{prefix}-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        Ok(Self(dir))
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
 }
 
 /// The config of `gdrf-bench step`: stage `stage` of the file as the only stage (batch
@@ -408,7 +390,7 @@ fn bench_step(
     if steps == 0 {
         bail!("--steps must be at least 1");
     }
-    let tmp = TempDir::new("gdrf-bench-step")?;
+    let tmp = TempDir::new("bench-step")?;
     let (cfg, notes) = step_config(config, stage, batch, batch_split, target, &tmp.0)?;
     let bf16 = cfg.precision == Precision::Bfloat16;
     for n in &notes {

@@ -249,12 +249,12 @@ pub fn encode_png(rgba: Vec<u8>, res: usize) -> Result<Vec<u8>> {
 pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<Metadata> {
     opts.validate()?;
     let images_dir = dir.join("images");
-    std::fs::create_dir_all(&images_dir).map_err(|source| Error::Io { path: images_dir.clone(), source })?;
+    std::fs::create_dir_all(&images_dir).map_err(|source| Error::Io { path: images_dir.clone(), err: source })?;
     // Any older description goes first: until the new one is written the folder reads
     // as unfinished, never as a mix of two datasets.
     let meta_path = dir.join(METADATA_FILE);
     match std::fs::remove_file(&meta_path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(Error::Io { path: meta_path, source: e }),
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(Error::Io { path: meta_path, err: e }),
         _ => {}
     }
     let records = par_try_map(opts.count, threads, |i| {
@@ -263,7 +263,7 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
         let path = dir.join(&rec.file);
         // Plain writes: the atomic metadata file, written last, is the commit point.
         std::fs::write(&path, encode_png(img.to_rgba8(), opts.resolution)?)
-            .map_err(|source| Error::Io { path: path.clone(), source })?;
+            .map_err(|source| Error::Io { path: path.clone(), err: source })?;
         progress();
         Ok(rec)
     })?;
@@ -286,7 +286,7 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
 fn remove_stale_images(images_dir: &Path, records: &[ImageRecord]) -> Result<()> {
     let io = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| Error::Io { path, source }
+        move |source| Error::Io { path, err: source }
     };
     let keep: std::collections::HashSet<&str> = records.iter().filter_map(|r| r.file.strip_prefix("images/")).collect();
     for entry in std::fs::read_dir(images_dir).map_err(io(images_dir))? {

@@ -49,7 +49,7 @@ fn palette_png(path: &Path) {
 
 #[test]
 fn every_pixel_format_becomes_rgb_on_white() {
-    let tmp = TempDir::new("load-formats");
+    let tmp = TempDir::new("load-formats").unwrap();
     let d = &tmp.0;
     solid_rgb(&d.join("a_rgb.png"), 8, 8, [10, 200, 30]);
     ImageBuffer::from_pixel(8, 8, Rgba([255u8, 0, 0, 128])).save(d.join("b_rgba.png")).unwrap();
@@ -101,7 +101,7 @@ fn every_pixel_format_becomes_rgb_on_white() {
 
 #[test]
 fn non_square_images_are_centre_cropped_and_any_size_is_area_resized() {
-    let tmp = TempDir::new("load-crop");
+    let tmp = TempDir::new("load-crop").unwrap();
     let d = &tmp.0;
     // Wide: red | blue | green thirds → the centre square is blue.
     let wide = ImageBuffer::from_fn(30, 10, |x, _| {
@@ -207,7 +207,7 @@ fn bad_images(root: &Path) -> Vec<BadImage> {
 
 #[test]
 fn bad_images_are_errors_naming_the_file() {
-    let tmp = TempDir::new("load-bad");
+    let tmp = TempDir::new("load-bad").unwrap();
     for (bad, make, expect) in bad_images(&tmp.0) {
         assert_fails_naming(&bad, make, expect);
     }
@@ -215,7 +215,7 @@ fn bad_images_are_errors_naming_the_file() {
 
 #[test]
 fn with_skip_bad_bad_images_are_counted_and_named() {
-    let tmp = TempDir::new("load-skip");
+    let tmp = TempDir::new("load-skip").unwrap();
     let dir = tmp.path("all");
     std::fs::create_dir_all(&dir).unwrap();
     solid_rgb(&dir.join("good.png"), 8, 8, [1, 2, 3]);
@@ -248,7 +248,7 @@ fn write_poses(path: &Path, entries: &[(&str, f64, f64)]) {
 
 #[test]
 fn camera_param_layout_reads_poses_and_rejects_inconsistencies() {
-    let tmp = TempDir::new("load-json");
+    let tmp = TempDir::new("load-json").unwrap();
     let d = tmp.path("64_PHOTOSHAPE_CHAIR_1_view");
     std::fs::create_dir_all(&d).unwrap();
     for (n, c) in [("0001.png", [9, 9, 9]), ("0002.png", [99, 99, 99]), ("0003.png", [199, 199, 199])] {
@@ -290,7 +290,7 @@ fn camera_param_layout_reads_poses_and_rejects_inconsistencies() {
 
 #[test]
 fn folders_take_an_optional_pose_file_and_require_poses_when_told() {
-    let tmp = TempDir::new("load-folder-poses");
+    let tmp = TempDir::new("load-folder-poses").unwrap();
     let d = tmp.path("imgs");
     std::fs::create_dir_all(&d).unwrap();
     solid_rgb(&d.join("a.png"), 8, 8, [1, 1, 1]);
@@ -313,7 +313,7 @@ fn c2w_at(x: f64, y: f64, z: f64) -> [[f64; 4]; 4] {
 
 #[test]
 fn carla_layout_converts_extrinsics_and_flips_with_the_release_rule() {
-    let tmp = TempDir::new("load-carla");
+    let tmp = TempDir::new("load-carla").unwrap();
     let imgs = tmp.path("carla/carla32");
     let poses = tmp.path("carla/carla_poses");
     std::fs::create_dir_all(&imgs).unwrap();
@@ -362,7 +362,7 @@ fn carla_layout_converts_extrinsics_and_flips_with_the_release_rule() {
 
 #[test]
 fn the_cache_is_reused_rebuilt_when_files_change_and_survives_corruption() {
-    let tmp = TempDir::new("load-cache");
+    let tmp = TempDir::new("load-cache").unwrap();
     let d = tmp.path("imgs");
     std::fs::create_dir_all(&d).unwrap();
     for i in 0..5u8 {
@@ -401,7 +401,7 @@ fn the_cache_is_reused_rebuilt_when_files_change_and_survives_corruption() {
 
 #[test]
 fn missing_or_empty_folders_are_errors() {
-    let tmp = TempDir::new("load-empty");
+    let tmp = TempDir::new("load-empty").unwrap();
     let e = load(&tmp.path("nope"), &opts(8)).unwrap_err().to_string();
     assert!(e.contains("nope") && e.contains("not a folder"), "{e}");
     let e = load(&tmp.0, &opts(8)).unwrap_err().to_string();

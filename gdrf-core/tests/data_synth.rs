@@ -35,7 +35,7 @@ fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
 
 #[test]
 fn same_seed_gives_byte_identical_datasets_for_any_thread_count() {
-    let tmp = TempDir::new("synth-determinism");
+    let tmp = TempDir::new("synth-determinism").unwrap();
     for category in Category::ALL {
         let opts = small(category, 10);
         let (a, b, c) = (tmp.path("a"), tmp.path("b"), tmp.path("c"));
@@ -56,7 +56,7 @@ fn same_seed_gives_byte_identical_datasets_for_any_thread_count() {
 
 #[test]
 fn metadata_round_trips_and_regenerates_each_image() {
-    let tmp = TempDir::new("synth-meta");
+    let tmp = TempDir::new("synth-meta").unwrap();
     let dir = tmp.path("d");
     let opts = SynthOptions { views_per_object: 2, ..small(Category::Chairs, 8) };
     let written = synth::generate(&dir, &opts, 2, &|| {}).unwrap();
@@ -124,7 +124,7 @@ fn alpha_of_png(path: &Path) -> Vec<f32> {
 
 #[test]
 fn recorded_poses_follow_the_camera_convention() {
-    let tmp = TempDir::new("synth-pose");
+    let tmp = TempDir::new("synth-pose").unwrap();
     let dir = tmp.path("d");
     let opts = SynthOptions { resolution: 64, ..small(Category::Chairs, 12) };
     let meta = synth::generate(&dir, &opts, 2, &|| {}).unwrap();
@@ -181,7 +181,7 @@ fn recorded_poses_follow_the_camera_convention() {
 
 #[test]
 fn swaps_keep_the_shape_and_change_the_appearance() {
-    let tmp = TempDir::new("synth-swap");
+    let tmp = TempDir::new("synth-swap").unwrap();
     let dir = tmp.path("d");
     let meta = synth::generate(&dir, &small(Category::Chairs, 6), 2, &|| {}).unwrap();
     // Shape i with appearance i is image i, byte for byte.
@@ -388,7 +388,7 @@ fn the_split_never_shares_an_object() {
 
 #[test]
 fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
-    let tmp = TempDir::new("synth-config");
+    let tmp = TempDir::new("synth-config").unwrap();
     let toml_text = format!(
         r#"
         path = "{}"
@@ -427,7 +427,7 @@ fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
 
 #[test]
 fn regenerating_a_folder_leaves_exactly_the_new_dataset() {
-    let tmp = TempDir::new("synth-regen");
+    let tmp = TempDir::new("synth-regen").unwrap();
     let dir = tmp.path("d");
     synth::generate(&dir, &small(Category::Chairs, 6), 2, &|| {}).unwrap();
     let meta = synth::generate(&dir, &SynthOptions { seed: 1, ..small(Category::Tables, 3) }, 2, &|| {}).unwrap();

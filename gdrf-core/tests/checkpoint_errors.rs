@@ -8,7 +8,7 @@ use gdrf_core::{Error, Generator, GeneratorConfig};
 use tch::{nn, Device, Kind, Tensor};
 
 fn small() -> GeneratorConfig {
-    GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 12, ..Default::default() }
+    GeneratorConfig { mapping_hidden_dim: 12, ..GeneratorConfig::tiny() }
 }
 
 fn tensors_of(cfg: &GeneratorConfig) -> Vec<(String, Tensor)> {
@@ -28,7 +28,7 @@ fn load_err(path: &std::path::Path) -> Error {
 
 #[test]
 fn wrong_shape_names_the_tensor_and_both_shapes() {
-    let dir = TempDir::new("ckpt-shape");
+    let dir = TempDir::new("ckpt-shape").unwrap();
     let cfg = small();
     let mut t = tensors_of(&cfg);
     let i = t.iter().position(|(n, _)| n == "template.sigma_head.weight").unwrap();
@@ -44,7 +44,7 @@ fn wrong_shape_names_the_tensor_and_both_shapes() {
 
 #[test]
 fn missing_and_unexpected_tensors_are_named() {
-    let dir = TempDir::new("ckpt-names");
+    let dir = TempDir::new("ckpt-names").unwrap();
     let cfg = small();
     let mut t = tensors_of(&cfg);
     t.retain(|(n, _)| n != "deform.head.bias");
@@ -63,7 +63,7 @@ fn missing_and_unexpected_tensors_are_named() {
 
 #[test]
 fn truncated_file_is_reported_as_truncated() {
-    let dir = TempDir::new("ckpt-trunc");
+    let dir = TempDir::new("ckpt-trunc").unwrap();
     let cfg = small();
     let vs = nn::VarStore::new(Device::Cpu);
     Generator::new(&vs.root(), &cfg).unwrap();
@@ -86,7 +86,7 @@ fn truncated_file_is_reported_as_truncated() {
 
 #[test]
 fn non_checkpoint_files_are_rejected() {
-    let dir = TempDir::new("ckpt-junk");
+    let dir = TempDir::new("ckpt-junk").unwrap();
     let p = dir.path("notes.txt");
     std::fs::write(&p, "these are not the tensors you are looking for\n".repeat(10)).unwrap();
     let msg = load_err(&p).to_string();
@@ -105,7 +105,7 @@ fn non_checkpoint_files_are_rejected() {
 
 #[test]
 fn saving_is_atomic_and_leaves_no_temporary_files() {
-    let dir = TempDir::new("ckpt-atomic");
+    let dir = TempDir::new("ckpt-atomic").unwrap();
     let cfg = small();
     let vs = nn::VarStore::new(Device::Cpu);
     Generator::new(&vs.root(), &cfg).unwrap();

@@ -28,7 +28,7 @@ fn max_abs(t: &Tensor) -> f64 {
 
 #[test]
 fn matches_the_lpips_package() {
-    let dir = TempDir::new("eval-lpips");
+    let dir = TempDir::new("eval-lpips").unwrap();
     let out = dir.0.to_str().unwrap();
     let t0 = Instant::now();
     run_python("reference/lpips_ref.py", &[out]);
@@ -77,7 +77,7 @@ fn matches_the_lpips_package() {
 
 #[test]
 fn a_misshaped_file_names_the_file_the_tensor_and_both_shapes() {
-    let dir = TempDir::new("eval-lpips-misshaped");
+    let dir = TempDir::new("eval-lpips-misshaped").unwrap();
     let zeros = |s: &[i64]| Tensor::zeros(s, (Kind::Float, Device::Cpu));
     let backbone = dir.path("alex-backbone.safetensors");
     let heads = dir.path("alex-heads.safetensors");

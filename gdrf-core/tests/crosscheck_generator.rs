@@ -37,7 +37,7 @@ impl Case {
 }
 
 fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
-    let dir = TempDir::new(&format!("crosscheck-{dtype}"));
+    let dir = TempDir::new(&format!("crosscheck-{dtype}")).unwrap();
     let out = dir.0.to_str().unwrap();
     run_python("reference/crosscheck.py", &["generator", "--out", out, "--dtype", dtype]);
     let case = Case {

@@ -13,7 +13,7 @@ use tch::{Device, Kind, Tensor};
 
 #[test]
 fn features_match_pytorch_fid() {
-    let dir = TempDir::new("eval-inception");
+    let dir = TempDir::new("eval-inception").unwrap();
     run_python("reference/inception_ref.py", &[dir.0.to_str().unwrap()]);
     let net = InceptionV3::load(&dir.path("weights.safetensors"), Device::Cpu).unwrap();
     let case = read_tensors(&dir.path("case.safetensors"));
@@ -45,7 +45,7 @@ type Named = Vec<(String, Tensor)>;
 
 #[test]
 fn bad_weight_files_are_named() {
-    let dir = TempDir::new("eval-inception-weights");
+    let dir = TempDir::new("eval-inception-weights").unwrap();
     run_python("reference/inception_ref.py", &[dir.0.to_str().unwrap(), "--weights-only"]);
     let good = read_tensors(&dir.path("weights.safetensors"));
     // The good tensors, edited.

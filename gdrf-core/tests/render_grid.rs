@@ -9,6 +9,7 @@ use common::{assert_close, repo_root};
 use gdrf_core::camera::{cam2world, Intrinsics, Poses, Rays};
 use gdrf_core::checkpoint::{load_generator, LoadedGenerator};
 use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
+use gdrf_core::eval::fidelity::psnr_of_mse;
 use gdrf_core::field::RadianceField;
 use gdrf_core::render::{GridConfig, Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
@@ -29,8 +30,7 @@ fn codes(n: i64, dim: i64, seed: u64) -> Tensor {
 
 fn psnr(a: &Tensor, b: &Tensor) -> f64 {
     // Pixels in (0, 1).
-    let mse = f64::try_from((a - b).square().mean(Kind::Double)).unwrap();
-    -10.0 * mse.max(1e-20).log10()
+    psnr_of_mse(f64::try_from((a - b).square().mean(Kind::Double)).unwrap())
 }
 
 #[test]

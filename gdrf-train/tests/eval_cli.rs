@@ -1,6 +1,7 @@
 //! `gdrf-train eval train-probe` and `gdrf-train eval` on a small procedural dataset: the
 //! probe beats the majority class on held-out images by a stated margin, and a random
 //! generator's images are far from the real ones where real images are near each other.
+#[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
 use common::TempDir;
@@ -48,7 +49,7 @@ fn assert_same_numbers(a: &serde_json::Value, b: &serde_json::Value, at: &str) {
 
 #[test]
 fn probe_learns_and_eval_is_calibrated() {
-    let tmp = TempDir::new("eval-cli");
+    let tmp = TempDir::new("eval-cli").unwrap();
     let data = tmp.path("chairs");
     let d = data.to_str().unwrap();
     gdrf_train(&[
@@ -92,7 +93,7 @@ fn probe_learns_and_eval_is_calibrated() {
     // A random-weight generator, scored against the dataset: the real-data end must be
     // far nearer the held-out images than the random generator is.
     let vs = nn::VarStore::new(Device::Cpu);
-    let cfg = GeneratorConfig { latent_dim: 16, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+    let cfg = GeneratorConfig { latent_dim: 16, ..GeneratorConfig::tiny() };
     gdrf_core::rng::with_global_seed(0, || Generator::new(&vs.root(), &cfg).unwrap());
     let gen = tmp.path("random.safetensors");
     save_generator(&gen, &vs, &Header::generator(cfg, Some(CameraConfig::chair()))).unwrap();

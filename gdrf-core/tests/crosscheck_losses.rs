@@ -57,7 +57,7 @@ fn check_terms(rep: &mut Report, losses: &Losses, t: &HashMap<String, Tensor>, p
 }
 
 fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
-    let dir = TempDir::new(&format!("crosscheck-losses-{dtype}"));
+    let dir = TempDir::new(&format!("crosscheck-losses-{dtype}")).unwrap();
     run_python("reference/crosscheck.py", &["losses", "--out", dir.0.to_str().unwrap(), "--dtype", dtype]);
     let t = read_tensors(&dir.path("case.safetensors"));
     let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path("case.json")).unwrap()).unwrap();

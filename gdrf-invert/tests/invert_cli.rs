@@ -2,6 +2,7 @@
 //! in gdrf-edit's format; every kind of bad input is an error that names it and leaves
 //! nothing behind; the initialiser trains, is refused by another generator and starts an
 //! inversion.
+#[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
 use common::TempDir;
@@ -72,7 +73,7 @@ fn bench_dataset(dir: &TempDir) -> std::path::PathBuf {
 
 #[test]
 fn a_photo_inverts_and_bad_inputs_are_named() {
-    let tmp = TempDir::new("invert-cli");
+    let tmp = TempDir::new("invert-cli").unwrap();
     let photo = photo_in(&tmp);
     let out = tmp.path("out");
     let o = out.to_str().unwrap();
@@ -165,7 +166,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
 
 #[test]
 fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
-    let tmp = TempDir::new("invert-cli-init");
+    let tmp = TempDir::new("invert-cli-init").unwrap();
     let photo = photo_in(&tmp);
     let init = tmp.path("init.safetensors");
     let i = init.to_str().unwrap();
@@ -250,7 +251,7 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
 
 #[test]
 fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
-    let tmp = TempDir::new("invert-bench");
+    let tmp = TempDir::new("invert-bench").unwrap();
     let data = bench_dataset(&tmp);
     let stem = tmp.path("bench");
     let said = ok(&[

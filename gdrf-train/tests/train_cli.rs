@@ -2,6 +2,7 @@
 //! and schedulers send) writes a checkpoint of the last finished step and `--resume`
 //! continues from it, an existing run is never overwritten silently, a run directory in
 //! use is refused to a second process, and `plot` draws.
+#[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
 use common::TempDir;
@@ -53,7 +54,7 @@ fn checkpoints(run: &Path) -> Vec<String> {
 
 #[test]
 fn config_errors_name_the_key_and_the_expectation() {
-    let dir = TempDir::new("cli-config");
+    let dir = TempDir::new("cli-config").unwrap();
     let good = std::fs::read_to_string(write_config(&dir.0, 10)).unwrap();
     for (edit, key, expected) in [
         (good.replace("log_interval = 1", "log_intervall = 1"), "log_intervall", "expected one of"),
@@ -64,7 +65,7 @@ fn config_errors_name_the_key_and_the_expectation() {
         let path = dir.path("bad.toml");
         std::fs::write(&path, edit).unwrap();
         let out = bin().arg("--config").arg(&path).arg("--run-dir").arg(dir.path("run")).output().unwrap();
-        assert_eq!(out.status.code(), Some(2));
+        assert_eq!(out.status.code(), Some(1));
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(key) && err.contains(expected) && err.contains("bad.toml"), "{key}: {err}");
     }
@@ -82,7 +83,7 @@ fn config_errors_name_the_key_and_the_expectation() {
 
 #[test]
 fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
-    let dir = TempDir::new("cli-sigterm");
+    let dir = TempDir::new("cli-sigterm").unwrap();
     let config = write_config(&dir.0, 100_000);
     let run = dir.path("run");
     let child = bin()
@@ -108,7 +109,7 @@ fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
     }] {
         let out = bin().args(&args).output().unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
         assert!(err.contains("in use by another gdrf-train") && err.contains(&child.id().to_string()), "{err}");
     }
     assert!(metrics_lines(&run) >= 3, "--force removed the running run's metrics");
@@ -132,7 +133,7 @@ fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
 
     // A new run in the same folder is refused without --force.
     let out = bin().arg("--config").arg(&config).arg("--run-dir").arg(&run).arg("--steps").arg("1").output().unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--resume"));
 
     let out = bin().arg("plot").arg(&run).output().unwrap();
@@ -145,7 +146,7 @@ fn sigterm_checkpoints_the_last_step_and_resume_continues_from_it() {
 fn a_rollback_is_reported_where_the_run_is_watched() {
     // Three non-finite steps in a row roll the run back; the console (here a pipe, so the
     // progress bar is hidden) says so, not only metrics.jsonl.
-    let dir = TempDir::new("cli-rollback");
+    let dir = TempDir::new("cli-rollback").unwrap();
     let config = write_config(&dir.0, 4);
     let mut text = std::fs::read_to_string(&config).unwrap();
     text.push_str("\n[debug]\ninject_nonfinite_steps = [1, 2, 3]\n\n[guard]\nrollback_after = 3\n");

@@ -29,7 +29,7 @@ fn effnet_weights() -> PathBuf {
 
 #[test]
 fn efficientnet_matches_the_pytorch_reference() {
-    let tmp = TempDir::new("effnet-ref");
+    let tmp = TempDir::new("effnet-ref").unwrap();
     let w = effnet_weights();
     run_python("reference/efficientnet_ref.py", &[w.to_str().unwrap(), tmp.0.to_str().unwrap()]);
     let case = read_tensors(&tmp.path("case.safetensors"));
@@ -87,7 +87,7 @@ fn chairs_in_top5(net: &EfficientNetLite0, images: &Tensor) -> i64 {
 
 #[test]
 fn the_weights_are_imagenet_trained() {
-    let tmp = TempDir::new("effnet-pretrained");
+    let tmp = TempDir::new("effnet-pretrained").unwrap();
     let images = chair_renders(&tmp, 24);
     let w = effnet_weights();
     let trained = EfficientNetLite0::load(&w, Device::Cpu).unwrap();
@@ -150,7 +150,7 @@ fn a_weights_file_with_a_misshaped_tensor_names_it() {
 
 #[test]
 fn distances_match_numpy_and_scipy() {
-    let tmp = TempDir::new("distance-ref");
+    let tmp = TempDir::new("distance-ref").unwrap();
     let opts = (Kind::Double, Device::Cpu);
     // Correlated features with different means and scales, n > d (full rank).
     let (a, b) = rng::with_global_seed(5, || {
@@ -186,7 +186,7 @@ fn distances_match_numpy_and_scipy() {
 
 #[test]
 fn psnr_and_ssim_match_the_pytorch_reference() {
-    let tmp = TempDir::new("fidelity-ref");
+    let tmp = TempDir::new("fidelity-ref").unwrap();
     let opts = (Kind::Float, Device::Cpu);
     // Structured images and a noisy, shifted copy: SSIM well inside (0, 1).
     let (base, other) = rng::with_global_seed(6, || {

@@ -34,7 +34,7 @@ fn min(t: &Tensor) -> f64 {
 /// Builds a small generator in `kind`.
 fn small_generator(kind: Kind, seed: i64) -> (nn::VarStore, Generator) {
     let mut vs = nn::VarStore::new(CPU);
-    let cfg = GeneratorConfig { latent_dim: 8, hidden_dim: 32, mapping_hidden_dim: 16, ..Default::default() };
+    let cfg = GeneratorConfig { hidden_dim: 32, ..GeneratorConfig::tiny() };
     let g = gdrf_core::rng::with_global_seed(seed, || Generator::new(&vs.root(), &cfg).unwrap());
     if kind == Kind::Double {
         vs.double();

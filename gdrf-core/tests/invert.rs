@@ -192,7 +192,7 @@ fn the_initialiser_beats_the_mean_code_on_held_out_generated_images() {
     use gdrf_core::{CameraConfig, GeneratorConfig};
     let (vs, g) = gdrf_core::rng::with_global_seed(4, || {
         let vs = tch::nn::VarStore::new(Device::Cpu);
-        let gcfg = GeneratorConfig { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() };
+        let gcfg = GeneratorConfig::tiny();
         let g = Generator::new(&vs.root(), &gcfg).unwrap();
         (vs, g)
     });

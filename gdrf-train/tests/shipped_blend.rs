@@ -1,6 +1,7 @@
 //! The shipped blend (models/chairs-tiny-blend) is exactly what its README's command makes
 //! from the two generators shipped beside it, and `gdrf-train interpolate` refuses bad input
 //! by name.
+#[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
 use common::{repo_root, TempDir};
@@ -22,7 +23,7 @@ fn interpolate(args: &[&str]) -> std::process::Output {
 
 #[test]
 fn the_shipped_blend_is_what_its_command_makes() {
-    let dir = TempDir::new("shipped-blend");
+    let dir = TempDir::new("shipped-blend").unwrap();
     let out = dir.path("blend.safetensors");
     let run = interpolate(&[
         "--from",
@@ -62,7 +63,7 @@ fn the_shipped_blend_is_what_its_command_makes() {
 
 #[test]
 fn interpolate_refuses_bad_input_by_name() {
-    let dir = TempDir::new("blend-errors");
+    let dir = TempDir::new("blend-errors").unwrap();
     let out = dir.path("x.safetensors");
     let ms = "models/chairs-tiny-ms/generator.safetensors";
     for (t, to, expected) in [
@@ -71,20 +72,22 @@ fn interpolate_refuses_bad_input_by_name() {
         ("0.5", "models/no-such/generator.safetensors", "models/no-such/generator.safetensors"),
     ] {
         let run = interpolate(&["--from", ms, "--to", to, "--t", t, "--out", out.to_str().unwrap()]);
-        assert_eq!(run.status.code(), Some(2));
+        assert_eq!(run.status.code(), Some(1), "a runtime error");
         let err = String::from_utf8_lossy(&run.stderr);
         assert!(err.contains(expected), "{expected} not in {err}");
         assert!(!out.exists());
     }
-    for (group, expected) in [
-        ("trunk", "expected PREFIX=T"),
-        ("trunk=0.3", "trunk names no parameter of the generator"),
-        ("template.trunk=-0.1", "the weight of template.trunk is -0.1"),
-        ("template.trunk=x", "expected a number after '='"),
+    // Malformed flags are usage errors (2); a well-formed weight that does not fit is found
+    // at run time (1).
+    for (group, expected, code) in [
+        ("trunk", "expected PREFIX=T", 2),
+        ("trunk=0.3", "trunk names no parameter of the generator", 1),
+        ("template.trunk=-0.1", "the weight of template.trunk is -0.1", 1),
+        ("template.trunk=x", "expected a number after '='", 2),
     ] {
         let run =
             interpolate(&["--from", ms, "--to", ms, "--t", "0.4", "--t-for", group, "--out", out.to_str().unwrap()]);
-        assert_eq!(run.status.code(), Some(2), "--t-for {group}");
+        assert_eq!(run.status.code(), Some(code), "--t-for {group}");
         let err = String::from_utf8_lossy(&run.stderr);
         assert!(err.contains(expected), "{expected} not in {err}");
         assert!(!out.exists());

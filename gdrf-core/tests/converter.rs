@@ -19,7 +19,7 @@ fn convert(args: &[&str]) -> (bool, String) {
 
 #[test]
 fn ema_weights_replace_the_raw_weights() {
-    let dir = TempDir::new("convert-ema");
+    let dir = TempDir::new("convert-ema").unwrap();
     let d = |n: &str| dir.path(n).to_str().unwrap().to_string();
     run_python("reference/make_release_checkpoint.py", &["--out", &d("")]);
     let (ok, err) =
@@ -38,7 +38,7 @@ fn ema_weights_replace_the_raw_weights() {
 
 #[test]
 fn bad_inputs_name_the_file() {
-    let dir = TempDir::new("convert-bad");
+    let dir = TempDir::new("convert-bad").unwrap();
     let d = |n: &str| dir.path(n).to_str().unwrap().to_string();
     run_python("reference/make_release_checkpoint.py", &["--out", &d("")]);
     std::fs::write(dir.path("junk.pth"), b"not a pickle").unwrap();

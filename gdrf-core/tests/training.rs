@@ -75,7 +75,7 @@ fn same_params(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
 
 #[test]
 fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
-    let dir = TempDir::new("train-few");
+    let dir = TempDir::new("train-few").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
@@ -115,7 +115,7 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
 
 #[test]
 fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
-    let dir = TempDir::new("train-resume");
+    let dir = TempDir::new("train-resume").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.checkpoint_interval = 100;
     let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
@@ -146,7 +146,7 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
 
 #[test]
 fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_term_trains_and_resumes_exactly() {
-    let dir = TempDir::new("train-projected");
+    let dir = TempDir::new("train-projected").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.checkpoint_interval = 100;
     cfg.discriminator.kind = DiscKind::Projected;
@@ -197,14 +197,14 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
     // … and the resolution and samples per ray of its last step (stage 2 from step 3: 16², 4 + 4).
     assert_eq!(g.header.info.get("resolution").map(String::as_str), Some("16"));
     assert_eq!(g.header.info.get("samples_per_ray").map(String::as_str), Some("8"));
-    assert!(gdrf_core::eval::report::trained_against_projected(&g.header));
+    assert!(gdrf_core::eval::provenance::trained_against_projected(&g.header));
     let g = load_generator(&dir.path("c").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
-    assert!(gdrf_core::eval::report::trained_against_projected(&g.header));
+    assert!(gdrf_core::eval::provenance::trained_against_projected(&g.header));
 }
 
 #[test]
 fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
-    let dir = TempDir::new("train-guard");
+    let dir = TempDir::new("train-guard").unwrap();
     let cfg = tiny_config(&dir.0, "[debug]\ninject_nonfinite_steps = [1, 6, 7, 8]\n\n[guard]\nrollback_after = 3");
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
@@ -233,7 +233,7 @@ fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
 
 #[test]
 fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
-    let dir = TempDir::new("train-stages");
+    let dir = TempDir::new("train-stages").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
@@ -267,7 +267,7 @@ fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
 
 #[test]
 fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
-    let dir = TempDir::new("train-d-only");
+    let dir = TempDir::new("train-d-only").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.stages[0].g_lr = Some(0.0);
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
@@ -298,7 +298,7 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
 
 #[test]
 fn a_non_finite_state_is_never_checkpointed() {
-    let dir = TempDir::new("train-nan-ckpt");
+    let dir = TempDir::new("train-nan-ckpt").unwrap();
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
     run_steps(&mut t, 2);
@@ -318,7 +318,7 @@ fn a_non_finite_state_is_never_checkpointed() {
 /// two chunks, with R1 due and DiffAugment's draws on.
 #[test]
 fn the_one_render_step_equals_two_renders_of_the_same_images() {
-    let dir = TempDir::new("train-one-render");
+    let dir = TempDir::new("train-one-render").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.stages.truncate(1);
     cfg.stages[0].batch_size = 4;
@@ -378,7 +378,7 @@ fn max_abs(t: &Tensor) -> f64 {
 /// re-rendered with gradients at the same depths) gives the single-pass gradient.
 #[test]
 fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
-    let dir = TempDir::new("train-patches");
+    let dir = TempDir::new("train-patches").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.stages.truncate(1);
     cfg.stages[0].resolution = 16;
@@ -430,7 +430,7 @@ fn every_shipped_config_loads_and_validates() {
 
 #[test]
 fn bfloat16_training_steps_stay_finite() {
-    let dir = TempDir::new("train-bf16");
+    let dir = TempDir::new("train-bf16").unwrap();
     let mut t = Trainer::new(tiny_config(&dir.0, "precision = \"bfloat16\""), &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
     for _ in 0..2 {
@@ -442,7 +442,7 @@ fn bfloat16_training_steps_stay_finite() {
 
 #[test]
 fn a_run_continues_under_a_longer_schedule_but_not_with_other_networks() {
-    let dir = TempDir::new("train-extend");
+    let dir = TempDir::new("train-extend").unwrap();
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.total_steps = 3;
     let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
@@ -463,7 +463,7 @@ fn a_run_continues_under_a_longer_schedule_but_not_with_other_networks() {
 
 #[test]
 fn a_run_can_start_from_an_exported_generator() {
-    let dir = TempDir::new("train-init");
+    let dir = TempDir::new("train-init").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
     a.prepare_data(&|| {}).unwrap();
@@ -496,7 +496,7 @@ fn a_run_can_start_from_an_exported_generator() {
 
 #[test]
 fn previews_neither_draw_from_nor_depend_on_the_global_generator() {
-    let dir = TempDir::new("train-previews");
+    let dir = TempDir::new("train-previews").unwrap();
     let t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();
     let randn = || Tensor::randn([16], (Kind::Float, Device::Cpu));
     let (first, after) =

@@ -1,0 +1,564 @@
+//! One training step: the real batch, the generator's draws, the discriminator's and the
+//! generator's updates (two renders, or one render shared by both players), the coverage
+//! term, and the guarded application of each update.
+use super::optim::{clip_grads, grad_norm, zero_grads};
+use super::{discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, patch_gradients};
+use super::{FakeBatch, Stage, StepKind, StepReport, Trainer};
+use crate::camera::Poses;
+use crate::data::{self, Dataset};
+use crate::disc::augment::AugmentedJudge;
+use crate::disc::Judge;
+use crate::loss::coverage::{coverage_gradients, CoverageDraws};
+use crate::loss::deform_reg::reg_ray_count;
+use crate::loss::{Losses, Schedule};
+use crate::render::{Noise, Renderer};
+use crate::rng::{Purpose, RandomSource, StepRng};
+use crate::{Error, Result};
+use std::time::Instant;
+use tch::{Device, Kind, Tensor};
+
+impl Trainer {
+    /// Generates the procedural dataset if the config asks for one that is not there yet.
+    pub fn prepare_data(&self, progress: &(dyn Fn() + Sync)) -> Result<data::Prepared> {
+        self.cfg.data.prepare(self.cfg.threads, progress)
+    }
+
+    /// The training images at `res` (loaded through the cache on first use).
+    pub fn dataset(&mut self, res: i64) -> Result<&Dataset> {
+        if !self.datasets.contains_key(&res) {
+            let opts = self.cfg.data.load_options(res as usize, self.cfg.threads);
+            let ds = data::load(&self.cfg.data.path, &opts, &|| {})?;
+            if ds.is_empty() {
+                return Err(Error::Data {
+                    path: self.cfg.data.path.clone(),
+                    reason: "the dataset holds no images".into(),
+                });
+            }
+            self.datasets.insert(res, ds);
+        }
+        Ok(&self.datasets[&res])
+    }
+
+    fn rng(&self, step: i64, purpose: Purpose) -> StepRng {
+        StepRng::new(self.cfg.seed, step as u64, purpose, Kind::Float, self.device)
+    }
+
+    /// Indices of the next `b` real images: consecutive positions in per-epoch random
+    /// permutations of the `n` images (each epoch's permutation drawn from the seed).
+    fn real_indices(&mut self, b: i64, n: i64) -> Vec<i64> {
+        (0..b)
+            .map(|i| {
+                let pos = self.progress.images_seen + i;
+                let epoch = pos / n;
+                if self.permutation.as_ref().map(|p| (p.0, p.1.len() as i64)) != Some((epoch, n)) {
+                    let mut perm: Vec<i64> = (0..n).collect();
+                    let mut r =
+                        StepRng::new(self.cfg.seed, epoch as u64, Purpose::RealIndices, Kind::Float, Device::Cpu);
+                    let u = r.u64s(n as usize);
+                    for k in (1..n as usize).rev() {
+                        perm.swap(k, (u[k] % (k as u64 + 1)) as usize);
+                    }
+                    self.permutation = Some((epoch, perm));
+                }
+                self.permutation.as_ref().unwrap().1[(pos % n) as usize]
+            })
+            .collect()
+    }
+
+    /// Runs one step (D step, then G step) and returns what happened. A non-finite loss or
+    /// gradient skips that network's update; `guard.rollback_after` such steps in a row
+    /// roll back to the newest checkpoint with the learning rates scaled down.
+    pub fn step(&mut self) -> Result<StepReport> {
+        let start = Instant::now();
+        let step = self.progress.step;
+        let stage_index = self.cfg.stage_index(step);
+        let stage = self.cfg.stages[stage_index].clone();
+        let alpha = self.cfg.alpha(step);
+        let (g_lr, d_lr) = self.cfg.learning_rates(step);
+        let (g_lr, d_lr) = (g_lr * self.progress.lr_scale, d_lr * self.progress.lr_scale);
+        let at = Schedule { step, alpha };
+        let (b, res) = (stage.batch_size, stage.resolution);
+
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let real_poses = real_poses.as_ref();
+        let (d, g) = if g_lr <= 0.0 {
+            // A discriminator-only stage: no generator render, no gradient, no EMA update.
+            let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
+            (d, Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false })
+        } else if self.cfg.step == StepKind::OneRender {
+            let (d, losses) = self.one_render_gradients(&stage, at, &real, real_poses, d_lr)?;
+            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, Some(losses))?)
+        } else {
+            let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
+            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, None)?)
+        };
+
+        let p = &mut self.progress;
+        p.step += 1;
+        p.images_seen += b;
+        let bad = d.skipped || g.skipped;
+        if bad {
+            p.skipped_steps += 1;
+            p.consecutive_bad += 1;
+        } else {
+            p.consecutive_bad = 0;
+        }
+        let seconds = start.elapsed().as_secs_f64();
+        p.train_seconds += seconds;
+        let mut report = StepReport {
+            step,
+            stage: stage_index,
+            resolution: res,
+            batch_size: b,
+            alpha,
+            d_total: d.total,
+            g_total: g.total,
+            d_terms: d.terms,
+            g_terms: g.terms,
+            grad_norm_d: d.norm,
+            grad_norm_g: g.norm,
+            lr_g: g_lr,
+            lr_d: d_lr,
+            d_skipped: d.skipped,
+            g_skipped: g.skipped,
+            seconds,
+            rolled_back_to: None,
+        };
+        if bad && self.progress.consecutive_bad >= self.cfg.guard.rollback_after {
+            report.rolled_back_to = Some(self.rollback()?);
+        }
+        Ok(report)
+    }
+
+    /// The real images of `step` at `stage`'s resolution, and their poses where known (the
+    /// next `batch_size` positions of the epoch permutations; the counter moves on in
+    /// [`Trainer::step`]).
+    fn real_batch(&mut self, stage: &Stage, step: i64) -> Result<(Tensor, Option<Tensor>)> {
+        let (b, res) = (stage.batch_size, stage.resolution);
+        let n_real = self.dataset(res)?.len() as i64;
+        let idx = self.real_indices(b, n_real);
+        let ds = &self.datasets[&res];
+        let flips: Option<Vec<bool>> =
+            ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
+        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
+        Ok((real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))))
+    }
+
+    /// The live generator's renderer with sampling config `rc`, at the configured precision.
+    fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig) -> Result<Renderer<'a>> {
+        let mut r = Renderer::new(&self.generator, &self.cfg.camera, rc)?;
+        r.field.compute_kind = self.cfg.precision.compute_kind();
+        Ok(r)
+    }
+
+    /// One player's fake batch of `stage` at `step`: codes `(B, latent)`, poses and
+    /// renderer noise, from the draws `[codes, poses, jitter, importance]`.
+    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 4]) -> (Tensor, Poses, Noise) {
+        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let [codes, poses, jitter, importance] = purposes;
+        let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
+        let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, poses));
+        let shape = [b, res * res, n];
+        let noise = Noise {
+            jitter: Some(self.rng(step, jitter).uniform(&shape)),
+            importance: Some(self.rng(step, importance).uniform(&shape)),
+        };
+        (z, poses, noise)
+    }
+
+    /// The discriminator behind the configured augmentation (`[discriminator] augment`),
+    /// drawing from (seed, step, `purpose`); `None` when no augmentation is configured.
+    fn augmented(&self, step: i64, purpose: Purpose) -> Option<AugmentedJudge<'_>> {
+        let d = &self.cfg.discriminator;
+        (!d.augment.is_empty())
+            .then(|| AugmentedJudge::new(self.disc.as_ref(), &d.augment, d.augment_fill, self.rng(step, purpose)))
+    }
+
+    fn discriminator_step(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        lr: f64,
+    ) -> Result<Update> {
+        let purposes = [Purpose::DiscCodes, Purpose::DiscPoses, Purpose::DiscJitter, Purpose::DiscImportance];
+        let (z, poses, noise) = self.fake_draws(stage, at.step, purposes);
+        self.discriminator_step_on(stage, at, real, real_poses, (&z, &poses, &noise), lr)
+    }
+
+    /// The release's discriminator step on fakes of the codes, poses and noise `draws`.
+    fn discriminator_step_on(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        (z, poses, noise): (&Tensor, &Poses, &Noise),
+        lr: f64,
+    ) -> Result<Update> {
+        let rc = self.cfg.render_config(at.step);
+        let renderer = self.live_renderer(&rc)?;
+        // Fakes from the live generator, rendered without gradients (the release's D step).
+        let lat = tch::no_grad(|| self.generator.latents(z, z, None));
+        let fake =
+            FakeBatch { latents: &lat, poses, z: Some(z), resolution: stage.resolution, regions: stage.regions, noise };
+        let augmented = self.augmented(at.step, Purpose::DiscAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let losses = discriminator_pass(&renderer, judge, real, real_poses, &fake, at, &self.cfg.loss)?;
+        // Gradients are zeroed before each backward (R1's own gradient never accumulates).
+        zero_grads(&self.dvs);
+        losses.total.backward();
+        Ok(self.apply(Net::D, &losses, lr))
+    }
+
+    fn generator_step(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        lr: f64,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        rendered_once: Option<Losses>,
+    ) -> Result<Update> {
+        // The one-render step has already left its gradient in G.
+        let mut losses = match rendered_once {
+            Some(l) => l,
+            None => self.generator_gradients(stage, at)?,
+        };
+        if self.cfg.loss.coverage_weight > 0.0 {
+            let poses = real_poses.ok_or_else(|| {
+                Error::Config(
+                    "loss.coverage_weight needs the real images' poses; the dataset has none (see data.poses)".into(),
+                )
+            })?;
+            let c = self.coverage_gradients(stage, at, real, poses)?;
+            losses.total = &losses.total + &c * self.cfg.loss.coverage_weight;
+            losses.terms.push(("g_coverage", c));
+        }
+        Ok(self.apply(Net::G, &losses, lr))
+    }
+
+    /// The coverage term's gradient, left in G (see [`crate::loss::coverage`]), with this
+    /// step's draws. Returns the MSE.
+    fn coverage_gradients(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: &Tensor,
+    ) -> Result<Tensor> {
+        let (b, res, step) = (real.size()[0], stage.resolution, at.step);
+        let k = self.cfg.loss.coverage_candidates;
+        let latent = self.cfg.generator.latent_dim as i64;
+        let shape = [b, res * res, stage.num_steps as i64];
+        let draws = CoverageDraws {
+            candidates: self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]),
+            jitter: self.rng(step, Purpose::CoverageJitter).uniform(&shape),
+            importance: self.rng(step, Purpose::CoverageImportance).uniform(&shape),
+        };
+        let rc = self.cfg.render_config(step);
+        // The candidates, without gradients or random draws (no jitter, mid-point importance
+        // samples).
+        let rc_candidates = crate::RenderConfig { jitter: false, ..rc.clone() };
+        let renderers = (self.live_renderer(&rc_candidates)?, self.live_renderer(&rc)?);
+        coverage_gradients(
+            &renderers,
+            real,
+            real_poses,
+            &draws,
+            (stage.num_steps as i64, stage.batch_split),
+            &self.cfg.loss,
+        )
+    }
+
+    /// Computes the generator's gradients of the step about to run and leaves them in
+    /// the generator's variables, without updating anything (diagnostics and tests:
+    /// e.g. the two-pass patch step must give the single-pass gradient). Returns the
+    /// loss terms.
+    pub fn generator_gradients_now(&mut self) -> Result<Vec<(&'static str, f64)>> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        Ok(self.generator_gradients(&stage, at)?.values())
+    }
+
+    /// Renders the generator's batch chunk by chunk and accumulates the gradient of the
+    /// batch-mean loss into the generator's variables (D frozen throughout).
+    fn generator_gradients(&mut self, stage: &Stage, at: Schedule) -> Result<Losses> {
+        let draws = self.generator_draws(stage, at.step);
+        // The generator step leaves D's parameters alone: frozen, they get no gradient.
+        self.dvs.freeze();
+        zero_grads(&self.gvs);
+        let split = stage.batch_split;
+        let mut mean = ChunkMean::default();
+        // One augmentation stream for the step: successive chunks get successive draws.
+        let augmented = self.augmented(at.step, Purpose::GenAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let result = (|| -> Result<()> {
+            for c in 0..split {
+                let losses = self.generator_chunk(judge, stage, at, &draws.chunk(c, split), split as f64)?;
+                mean.add(&losses, split);
+            }
+            Ok(())
+        })();
+        self.dvs.unfreeze();
+        result?;
+        Ok(mean.losses())
+    }
+
+    /// The generator's draws of `step`: codes, poses and renderer noise (in pairs sharing a
+    /// pose and depths while the mode-seeking term is on, so that a pair's difference is
+    /// its codes' alone), the regulariser rays, and whether a fault is injected.
+    fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
+        let (b, res) = (stage.batch_size, stage.resolution);
+        let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
+        let (z, poses, noise) = self.fake_draws(stage, step, purposes);
+        let (poses, noise) = if self.cfg.loss.diversity_at(step) > 0.0 {
+            let pair = |t: &Option<Tensor>| t.as_ref().map(crate::camera::rows_in_pairs);
+            (poses.in_pairs(), Noise { jitter: pair(&noise.jitter), importance: pair(&noise.importance) })
+        } else {
+            (poses, noise)
+        };
+        let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
+        let reg_rays =
+            Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
+                .view([b, n_reg])
+                .to_device(self.device);
+        let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
+        GenDraws { z, poses, noise, reg_rays, inject }
+    }
+
+    /// The one-render step ([`StepKind::OneRender`]) up to the generator's update: renders
+    /// the generator's batch once with its graph, takes the discriminator's step on those
+    /// images (detached), then leaves in G the gradient of the batch-mean loss through the
+    /// updated discriminator on the same graph. Returns D's update and G's losses.
+    fn one_render_gradients(
+        &mut self,
+        stage: &Stage,
+        at: Schedule,
+        real: &Tensor,
+        real_poses: Option<&Tensor>,
+        d_lr: f64,
+    ) -> Result<(Update, Losses)> {
+        let draws = self.generator_draws(stage, at.step);
+        let split = stage.batch_split;
+        let rc = self.cfg.render_config(at.step);
+        zero_grads(&self.gvs);
+        // Every chunk's graph is kept until the generator's backward.
+        let rendered = {
+            let renderer = self.live_renderer(&rc)?;
+            (0..split)
+                .map(|c| {
+                    let d = draws.chunk(c, split);
+                    let lat = self.generator.latents(&d.z, &d.z, None);
+                    let (img, parts) = renderer.render_regions(&lat, &d.poses, stage.resolution, 1, &d.noise)?;
+                    Ok((d, lat, img, parts))
+                })
+                .collect::<Result<Vec<_>>>()?
+        };
+        let fakes = Tensor::cat(&rendered.iter().map(|r| r.2.detach()).collect::<Vec<_>>(), 0);
+        let d = {
+            let augmented = self.augmented(at.step, Purpose::DiscAugment);
+            let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+            let losses = discriminator_judgement(
+                judge,
+                real,
+                real_poses,
+                &fakes,
+                &draws.poses,
+                Some(&draws.z),
+                at,
+                &self.cfg.loss,
+            )?;
+            zero_grads(&self.dvs);
+            losses.total.backward();
+            losses
+        };
+        let d = self.apply(Net::D, &d, d_lr);
+        self.dvs.freeze();
+        let mut mean = ChunkMean::default();
+        let fault = if draws.inject { f64::NAN } else { 1.0 };
+        let augmented = self.augmented(at.step, Purpose::GenAugment);
+        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let result = (|| -> Result<()> {
+            for (d, lat, img, parts) in &rendered {
+                let fake = FakeBatch {
+                    latents: lat,
+                    poses: &d.poses,
+                    z: Some(&d.z),
+                    resolution: stage.resolution,
+                    regions: 1,
+                    noise: &d.noise,
+                };
+                let mut losses = generator_judgement(
+                    &self.generator,
+                    judge,
+                    img,
+                    parts,
+                    &fake,
+                    Some(&d.reg_rays),
+                    at,
+                    &self.cfg.loss,
+                )?;
+                losses.total = losses.total.g_mul_scalar(fault);
+                (&losses.total / split as f64).backward();
+                mean.add(&losses, split);
+            }
+            Ok(())
+        })();
+        self.dvs.unfreeze();
+        result?;
+        Ok((d, mean.losses()))
+    }
+
+    /// The one-render step's discriminator update (applied) and generator gradient (left in
+    /// G's variables, not applied) for the step about to run; returns G's loss terms. With
+    /// [`Trainer::discriminator_step_on_generator_draws_now`] and
+    /// [`Trainer::generator_gradients_now`], the same step taken the release's way (tests).
+    pub fn one_render_gradients_now(&mut self) -> Result<Vec<(&'static str, f64)>> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        let (_, d_lr) = self.cfg.learning_rates(step);
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let (_, losses) =
+            self.one_render_gradients(&stage, at, &real, real_poses.as_ref(), d_lr * self.progress.lr_scale)?;
+        Ok(losses.values())
+    }
+
+    /// The release's discriminator step (its own no-grad render) applied to the fakes of
+    /// the generator's draws of the step about to run, instead of its own draws (tests).
+    pub fn discriminator_step_on_generator_draws_now(&mut self) -> Result<()> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        let at = Schedule { step, alpha: self.cfg.alpha(step) };
+        let (_, d_lr) = self.cfg.learning_rates(step);
+        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let draws = self.generator_draws(&stage, step);
+        let lr = d_lr * self.progress.lr_scale;
+        self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), (&draws.z, &draws.poses, &draws.noise), lr)?;
+        Ok(())
+    }
+
+    /// Renders one chunk of the generator's batch, backpropagates its share of the loss
+    /// (1/split of the chunk mean) into G's gradients and returns its (unscaled) losses.
+    fn generator_chunk(
+        &self,
+        judge: &dyn Judge,
+        stage: &Stage,
+        at: Schedule,
+        draws: &GenDraws,
+        split: f64,
+    ) -> Result<Losses> {
+        let GenDraws { z, poses, noise, reg_rays, inject } = draws;
+        let rc = self.cfg.render_config(at.step);
+        let renderer = self.live_renderer(&rc)?;
+        let gen = &self.generator;
+        let cfg = &self.cfg.loss;
+        let res = stage.resolution;
+        let fault = if *inject { f64::NAN } else { 1.0 };
+        if stage.regions == 1 {
+            let lat = gen.latents(z, z, None);
+            let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
+            let mut losses = generator_pass(&renderer, judge, &fake, Some(reg_rays), at, cfg)?;
+            losses.total = losses.total.g_mul_scalar(fault);
+            (&losses.total / split).backward();
+            return Ok(losses);
+        }
+        patch_gradients(&renderer, judge, (z, poses, noise), (res, stage.regions), reg_rays, at, cfg, (split, fault))
+    }
+
+    /// Checks finiteness, clips and applies one network's update.
+    fn apply(&mut self, net: Net, losses: &Losses, lr: f64) -> Update {
+        let vs = match net {
+            Net::G => &self.gvs,
+            Net::D => &self.dvs,
+        };
+        let total = losses.total.double_value(&[]);
+        let norm = grad_norm(vs);
+        let ok = total.is_finite() && norm.is_finite();
+        if ok {
+            if self.cfg.optim.grad_clip > 0.0 {
+                clip_grads(vs, norm, self.cfg.optim.grad_clip);
+            }
+            match net {
+                Net::G => {
+                    self.adam_g.step(&self.gvs, lr);
+                    self.ema.update(&self.evs, &self.gvs);
+                }
+                Net::D => self.adam_d.step(&self.dvs, lr),
+            }
+        }
+        Update { total, terms: losses.values(), norm, skipped: !ok }
+    }
+}
+
+/// The generator's random draws of one step ([`Trainer::generator_draws`]).
+struct GenDraws {
+    /// `(B, latent)`.
+    z: Tensor,
+    poses: Poses,
+    noise: Noise,
+    /// `(B, n)` rays of each image the regularisers are taken on.
+    reg_rays: Tensor,
+    /// A NaN is injected into this step's generator loss (`[debug]`).
+    inject: bool,
+}
+
+impl GenDraws {
+    /// Chunk `c` of `split` equal chunks of the batch.
+    fn chunk(&self, c: i64, split: i64) -> GenDraws {
+        let len = self.z.size()[0] / split;
+        let sl = |t: &Tensor| t.narrow(0, c * len, len);
+        GenDraws {
+            z: sl(&self.z),
+            poses: self.poses.narrow(c * len, len),
+            noise: Noise {
+                jitter: self.noise.jitter.as_ref().map(sl),
+                importance: self.noise.importance.as_ref().map(sl),
+            },
+            reg_rays: sl(&self.reg_rays),
+            inject: self.inject,
+        }
+    }
+}
+
+/// The batch mean of per-chunk losses (each chunk weighs 1/split).
+#[derive(Default)]
+struct ChunkMean {
+    total: f64,
+    terms: Vec<(&'static str, f64)>,
+}
+
+impl ChunkMean {
+    fn add(&mut self, chunk: &Losses, split: i64) {
+        self.total += chunk.total.double_value(&[]) / split as f64;
+        for (i, (k, v)) in chunk.values().into_iter().enumerate() {
+            if i == self.terms.len() {
+                self.terms.push((k, 0.0));
+            }
+            self.terms[i].1 += v / split as f64;
+        }
+    }
+
+    fn losses(&self) -> Losses {
+        Losses {
+            total: Tensor::from(self.total),
+            terms: self.terms.iter().map(|(k, v)| (*k, Tensor::from(*v))).collect(),
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Net {
+    G,
+    D,
+}
+
+struct Update {
+    total: f64,
+    terms: Vec<(&'static str, f64)>,
+    norm: f64,
+    skipped: bool,
+}
