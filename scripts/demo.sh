@@ -30,18 +30,18 @@ invert=target/debug/gdrf-invert
 
 model=models/chairs-campaign/generator.safetensors
 # Rows: seeds 0–5; columns: 4 views around the object.
-"$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --steps 12 \
+"$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --samples 12 \
   --no-jitter --out out/samples.png
 # Row i keeps the shape of seed i, column j takes the appearance of seed j (each row's shape
 # side is computed once and re-shaded).
-"$edit" matrix --checkpoint "$model" --sources seed:0,seed:1,seed:2,seed:3 --resolution 64 --steps 12 \
+"$edit" matrix --checkpoint "$model" --sources seed:0,seed:1,seed:2,seed:3 --resolution 64 --samples 12 \
   --yaw 30 --out out/swap.png
 # The shape of seed 0 with the appearance of seed 2 on a 24-view orbit (frames, strip, GIF).
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from seed:2 --orbit 24 --resolution 64 \
-  --steps 12 --out out/orbit --force
+  --samples 12 --out out/orbit --force
 # Seed 0's shape while its appearance moves to seed 3's.
 "$edit" interp --checkpoint "$model" --from seed:0 --to seed:3 --what appearance --frames 8 --resolution 64 \
-  --steps 12 --out out/interp --force
+  --samples 12 --out out/interp --force
 # A mesh of seed 1 coloured by template-space position (correspondences across shapes).
 "$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
 # A held-out chair of the dataset (never trained on) at its known pose, inverted into
@@ -49,11 +49,11 @@ model=models/chairs-campaign/generator.safetensors
 "$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 \
   --orbit 12 --out out/invert --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
-  --orbit 12 --resolution 64 --steps 12 --out out/invert-swap --force
+  --orbit 12 --resolution 64 --samples 12 --out out/invert-swap --force
 # Scored where it learned (32², 12 + 12 samples). 200 images keep this to a couple of
 # minutes; the figures in the README use --num 500.
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
-  --num 200 --resolution 32 --steps 12 --out out/eval
+  --num 200 --resolution 32 --samples 12 --out out/eval
 echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png); from the shipped model:"
 echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply, out/invert/,"
 echo "      out/invert-swap/ and out/eval/"

@@ -138,17 +138,39 @@ impl Default for CameraConfig {
     }
 }
 
-impl CameraConfig {
-    /// The camera of a dataset preset: `chair`, `car` or `carla` (the release's configs).
-    pub fn preset(name: &str) -> Result<Self> {
+/// The cameras of the release's dataset configs, by name: what `--camera` takes in every
+/// binary.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum CameraPreset {
+    Chair,
+    Car,
+    Carla,
+}
+
+impl CameraPreset {
+    pub fn camera(self) -> CameraConfig {
+        match self {
+            Self::Chair => CameraConfig::chair(),
+            Self::Car => CameraConfig::car(),
+            Self::Carla => CameraConfig::carla(),
+        }
+    }
+}
+
+impl std::str::FromStr for CameraPreset {
+    type Err = Error;
+    fn from_str(name: &str) -> Result<Self> {
         match name {
-            "chair" => Ok(Self::chair()),
-            "car" => Ok(Self::car()),
-            "carla" => Ok(Self::carla()),
+            "chair" => Ok(Self::Chair),
+            "car" => Ok(Self::Car),
+            "carla" => Ok(Self::Carla),
             other => Err(Error::Config(format!("camera preset '{other}': expected chair, car or carla"))),
         }
     }
+}
 
+impl CameraConfig {
     pub fn chair() -> Self {
         Self {
             fov_deg: 50.0,
@@ -363,8 +385,8 @@ mod tests {
 
     #[test]
     fn presets_validate() {
-        assert_eq!(CameraConfig::preset("car").unwrap(), CameraConfig::car());
-        assert!(CameraConfig::preset("plane").unwrap_err().to_string().contains("'plane'"));
+        assert_eq!("car".parse::<CameraPreset>().unwrap().camera(), CameraConfig::car());
+        assert!("plane".parse::<CameraPreset>().unwrap_err().to_string().contains("'plane'"));
         for c in [CameraConfig::chair(), CameraConfig::car(), CameraConfig::carla()] {
             c.validate().unwrap();
         }

@@ -42,7 +42,7 @@ fn view(
 
 /// The recovery tests' optimisation: 60 steps from the mean code, MSE only.
 fn recovery_cfg(res: i64, n: usize) -> InvertConfig {
-    InvertConfig { steps: 60, resolution: res, num_steps: n, perceptual_weight: 0.0, lr: 0.02, ..Default::default() }
+    InvertConfig { steps: 60, resolution: res, samples: n, perceptual_weight: 0.0, lr: 0.02, ..Default::default() }
 }
 
 #[test]
@@ -152,7 +152,7 @@ fn pose_refinement_moves_a_wrong_pose_toward_the_true_one() {
     let cfg = InvertConfig {
         steps: 60,
         resolution: res,
-        num_steps: n,
+        samples: n,
         perceptual_weight: 0.0,
         lr: 0.01,
         refine_pose: true,
@@ -202,7 +202,7 @@ fn the_initialiser_beats_the_mean_code_on_held_out_generated_images() {
     let cam = CameraConfig::default();
     let cfg = InitConfig {
         resolution: 32,
-        num_steps: 6,
+        samples: 6,
         count: 1024 + 64,
         held_out: 64,
         batch_size: 32,

@@ -90,11 +90,12 @@ struct RenderArgs {
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more). Default: where the model
-    /// learned, else 36; the authors' renders use 96. `--samples` is the same flag, as in
-    /// gdrf-invert, where `--steps` counts optimisation steps.
-    #[arg(long, visible_alias = "samples")]
-    steps: Option<usize>,
+    /// Coarse samples per ray N (the importance pass adds N more), as in gdrf-invert and
+    /// gdrf-train eval. Default: where the model learned, else 36; the authors' renders use
+    /// 96. `--steps` is the same flag (its older name: steps are optimisation steps
+    /// everywhere else).
+    #[arg(long, alias = "steps")]
+    samples: Option<usize>,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
@@ -268,7 +269,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let (Model { generator, camera, device: dev, learned, .. }, threads) = swap::open(&a.model)?;
     let resolution = a.resolution.unwrap_or(learned.resolution);
     let config = RenderConfig {
-        num_steps: a.steps.unwrap_or(learned.samples),
+        num_steps: a.samples.unwrap_or(learned.samples),
         jitter: !a.no_jitter,
         force_last_white: a.force_last_white,
         chunk_points: a.chunk_points,
@@ -365,7 +366,7 @@ mod tests {
     #[test]
     fn render_takes_the_samples_per_ray_as_steps_or_samples() {
         let steps = |flag: &str| match Cli::try_parse_from(["gdrf-edit", "render", flag, "8"]).unwrap().command {
-            Some(Command::Render(a)) => a.steps,
+            Some(Command::Render(a)) => a.samples,
             _ => unreachable!("parsed as render"),
         };
         assert_eq!((steps("--steps"), steps("--samples")), (Some(8), Some(8)));

@@ -6,6 +6,7 @@ use crate::{load_model, Model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{release_ellipse, turntable, Poses, Rays};
+use gdrf_core::config::CameraPreset;
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::render::{Noise, Renderer};
@@ -33,8 +34,8 @@ pub struct ModelArgs {
     device: String,
     /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
     /// camera stored with the checkpoint.
-    #[arg(long, value_parser = ["chair", "car", "carla"])]
-    camera: Option<String>,
+    #[arg(long, value_enum)]
+    camera: Option<CameraPreset>,
     /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
     /// where the generator learned; gdrf-invert writes a reusable feature file): the
     /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, else the
@@ -65,11 +66,11 @@ pub struct ViewArgs {
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
     yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more). Default: where the model
-    /// learned, else 36. `--samples` is the same flag, as in gdrf-invert, where `--steps`
-    /// counts optimisation steps.
-    #[arg(long, visible_alias = "samples")]
-    steps: Option<usize>,
+    /// Coarse samples per ray N (the importance pass adds N more), as in gdrf-invert and
+    /// gdrf-train eval. Default: where the model learned, else 36. `--steps` is the same
+    /// flag (its older name: steps are optimisation steps everywhere else).
+    #[arg(long, alias = "steps")]
+    samples: Option<usize>,
     /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
     #[arg(long, default_value_t = 1.0)]
     psi: f64,
@@ -97,11 +98,11 @@ impl ViewArgs {
     /// Applies `--preset`, and renders where `model` learned unless told otherwise.
     fn resolved(mut self, model: &Model) -> Self {
         if self.preset.as_deref() == Some("release") {
-            self.steps = Some(96);
+            self.samples = Some(96);
             self.psi = 0.7;
         }
         self.resolution.get_or_insert(model.learned.resolution);
-        self.steps.get_or_insert(model.learned.samples);
+        self.samples.get_or_insert(model.learned.samples);
         self
     }
 
@@ -112,7 +113,7 @@ impl ViewArgs {
 
     /// The coarse samples per ray, once [`Self::resolved`].
     fn samples(&self) -> usize {
-        self.steps.expect("ViewArgs::resolved sets the samples per ray")
+        self.samples.expect("ViewArgs::resolved sets the samples per ray")
     }
 
     fn field(&self) -> FieldOptions {
@@ -222,8 +223,8 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     let dev = device::select(&m.device)?;
     let checkpoint = (!m.random_init).then(|| m.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator));
     let mut model = load_model(checkpoint.as_deref(), m.init_seed, dev)?;
-    if let Some(name) = &m.camera {
-        model.camera = gdrf_core::CameraConfig::preset(name)?;
+    if let Some(preset) = m.camera {
+        model.camera = preset.camera();
     }
     model.photo = PhotoSettings {
         pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
@@ -259,8 +260,8 @@ pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
                 p.display(),
                 ph.cfg.steps,
                 ph.cfg.resolution,
-                ph.cfg.num_steps,
-                ph.cfg.num_steps
+                ph.cfg.samples,
+                ph.cfg.samples
             );
             gdrf_core::invert::features_of_photo(
                 &model.generator,
@@ -548,7 +549,7 @@ mod tests {
             #[command(flatten)]
             view: ViewArgs,
         }
-        let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.steps;
+        let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.samples;
         assert_eq!(steps(&["x"]), None, "default: where the model learned");
         assert_eq!(steps(&["x", "--steps", "8"]), Some(8));
         assert_eq!(steps(&["x", "--samples", "8"]), Some(8));
@@ -565,7 +566,7 @@ mod tests {
             let cli = <Cli as clap::Parser>::try_parse_from(args).unwrap();
             let (model, _) = open(&cli.model).unwrap();
             let c = &model.photo.cfg;
-            (c.resolution, c.num_steps, c.steps)
+            (c.resolution, c.samples, c.steps)
         };
         // The shipped generator's header records 32² and 24 samples per ray.
         let shipped = gdrf_core::paths::shipped_generator();
@@ -575,7 +576,7 @@ mod tests {
         assert_eq!(photo_cfg(&["x", "--device", "cpu"]).0, 32);
         // A random generator has no training record: gdrf-invert's plain defaults.
         let d = gdrf_core::invert::InvertConfig::default();
-        assert_eq!(photo_cfg(&["x", "--random-init", "--device", "cpu"]), (d.resolution, d.num_steps, d.steps));
+        assert_eq!(photo_cfg(&["x", "--random-init", "--device", "cpu"]), (d.resolution, d.samples, d.steps));
     }
 
     fn small() -> (nn::VarStore, Generator) {
@@ -598,7 +599,7 @@ mod tests {
             views: 1,
             pitch: None,
             yaw: 30.0,
-            steps: Some(6),
+            samples: Some(6),
             psi: 1.0,
             noise_seed: 3,
             preset: None,

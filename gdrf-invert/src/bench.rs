@@ -188,7 +188,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let base = InvertConfig {
         steps: a.steps,
         resolution: res,
-        num_steps: a.samples,
+        samples: a.samples,
         lr: a.reference_lr,
         coarse_fraction: 0.0,
         patience: 0,
@@ -208,8 +208,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let mut methods: Vec<(String, bool, InvertConfig)> =
         vec![(format!("{tag}, {} steps, lr {}, all rays", a.reference_steps, a.reference_lr), with_init, reference)];
     // The defaults, and each speed option turned off or on against them.
-    let defaults =
-        InvertConfig { resolution: res, num_steps: a.samples, lr: a.lr, steps: a.steps, ..Default::default() };
+    let defaults = InvertConfig { resolution: res, samples: a.samples, lr: a.lr, steps: a.steps, ..Default::default() };
     let d = defaults.clone();
     methods.push((format!("{tag}, defaults"), with_init, d.clone()));
     if with_init {
@@ -231,9 +230,9 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     methods.push((
         format!("{tag}, defaults, grid 32 (threshold 5), {half} samples"),
         with_init,
-        InvertConfig { num_steps: half, ..grid },
+        InvertConfig { samples: half, ..grid },
     ));
-    methods.push((format!("{tag}, defaults, {half} samples"), with_init, InvertConfig { num_steps: half, ..d }));
+    methods.push((format!("{tag}, defaults, {half} samples"), with_init, InvertConfig { samples: half, ..d }));
     eprintln!(
         "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),

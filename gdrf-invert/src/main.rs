@@ -5,6 +5,7 @@ mod bench;
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use gdrf_core::checkpoint::load_generator;
+use gdrf_core::config::CameraPreset;
 use gdrf_core::device;
 use gdrf_core::edit::generator_id;
 use gdrf_core::eval::fidelity::psnr_all;
@@ -74,7 +75,7 @@ struct TrainInitArgs {
     #[arg(long, default_value_t = InitConfig::default().resolution)]
     resolution: i64,
     /// Samples per ray of the generated images.
-    #[arg(long, default_value_t = InitConfig::default().num_steps)]
+    #[arg(long, default_value_t = InitConfig::default().samples)]
     samples: usize,
     #[arg(long, default_value_t = InitConfig::default().steps)]
     steps: i64,
@@ -118,8 +119,8 @@ struct InvertArgs {
     pose: Option<String>,
     /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
     /// camera stored with the generator, as gdrf-edit's --camera.
-    #[arg(long, value_parser = ["chair", "car", "carla"])]
-    camera: Option<String>,
+    #[arg(long, value_enum)]
+    camera: Option<CameraPreset>,
     /// A mask image of the photo's size: black pixels become background (white).
     #[arg(long, value_name = "FILE")]
     mask: Option<PathBuf>,
@@ -237,7 +238,7 @@ fn run(a: InvertArgs) -> Result<()> {
     let m = load_generator(&gen_path, dev, Kind::Float)
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let learned = InvertConfig::where_learned(&m.header);
-    let (resolution, samples) = (a.resolution.unwrap_or(learned.resolution), a.samples.unwrap_or(learned.num_steps));
+    let (resolution, samples) = (a.resolution.unwrap_or(learned.resolution), a.samples.unwrap_or(learned.samples));
     let said = if a.resolution.is_none() && m.header.trained_resolution().is_some() {
         " (where the generator learned)"
     } else {
@@ -247,7 +248,7 @@ fn run(a: InvertArgs) -> Result<()> {
         steps: a.steps,
         lr: a.lr,
         resolution,
-        num_steps: samples,
+        samples,
         mse_weight: a.mse_weight,
         perceptual_weight: if a.perceptual == "none" { 0.0 } else { a.perceptual_weight },
         prior_shape: a.prior_shape,
@@ -271,7 +272,7 @@ fn run(a: InvertArgs) -> Result<()> {
     }
     let pose = a.pose.as_deref().map(|p| parse_pose_degrees(p, "--pose")).transpose()?;
     let cam = match &a.camera {
-        Some(name) => gdrf_core::CameraConfig::preset(name)?,
+        Some(preset) => preset.camera(),
         None => m.header.camera.clone().unwrap_or_default(),
     };
     let g = &m.generator;
@@ -421,7 +422,7 @@ fn train_init(a: TrainInitArgs) -> Result<()> {
     let dev = device::select(&a.device)?;
     let cfg = InitConfig {
         resolution: a.resolution,
-        num_steps: a.samples,
+        samples: a.samples,
         count: a.count,
         held_out: a.held_out,
         batch_size: a.batch_size,

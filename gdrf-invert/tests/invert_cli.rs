@@ -133,7 +133,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
         let said = ok(&args);
         let r: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join("invert.json")).unwrap()).unwrap();
-        (r["config"]["resolution"].as_i64().unwrap(), r["config"]["num_steps"].as_i64().unwrap(), said)
+        (r["config"]["resolution"].as_i64().unwrap(), r["config"]["samples"].as_i64().unwrap(), said)
     };
     let (res, n, said) = config_of(&[], "learned");
     assert_eq!((res, n), (32, 12));

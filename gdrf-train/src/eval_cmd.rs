@@ -90,10 +90,10 @@ struct RunArgs {
     /// Render resolution (default: the dataset's).
     #[arg(long)]
     resolution: Option<i64>,
-    /// Samples per ray (coarse; as many fine). `--samples` is the same flag, as in
-    /// gdrf-invert, where `--steps` counts optimisation steps.
-    #[arg(long, visible_alias = "samples", default_value_t = 24)]
-    steps: i64,
+    /// Samples per ray (coarse; as many fine), as in gdrf-invert and gdrf-edit; `--steps` is
+    /// the same flag (its older name: steps are optimisation steps everywhere else).
+    #[arg(long, alias = "steps", default_value_t = 24)]
+    samples: i64,
     /// Also score the real images seen at this lower resolution (antialiased down, then
     /// back up): what the resolution alone costs real data, the reference for a generator
     /// trained at it (e.g. 32 for `chairs-tiny`). Printed and written as `real_at_resolution`.
@@ -229,7 +229,7 @@ fn run(a: RunArgs) -> Result<()> {
         num: a.num,
         swap: a.swap,
         resolution: a.resolution,
-        steps: a.steps,
+        samples: a.samples,
         seed: a.seed,
         features,
         effnet_weights: a.common.effnet_weights.clone().unwrap_or_else(EfficientNetLite0::default_path),

@@ -7,7 +7,7 @@ mod train_cmd;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use gdrf_core::config::CameraConfig;
+use gdrf_core::config::CameraPreset;
 use gdrf_core::data::layouts::Layout;
 use gdrf_core::data::synth::{self, Category, SynthOptions};
 use gdrf_core::data::{self, CacheStatus, DataConfig, LoadOptions, Metadata, Prepared};
@@ -134,8 +134,8 @@ struct SynthArgs {
     #[arg(long)]
     no_shadows: bool,
     /// Camera preset for field of view, ray range and pose distribution.
-    #[arg(long, default_value = "chair", value_parser = ["chair", "car", "carla"])]
-    camera: String,
+    #[arg(long, value_enum, default_value = "chair")]
+    camera: CameraPreset,
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
@@ -319,7 +319,7 @@ fn synth_cmd(a: SynthArgs) -> Result<()> {
     if a.out.join(data::METADATA_FILE).exists() && !a.force {
         bail!("{} already holds a dataset (metadata.json); pass --force to replace it", a.out.display());
     }
-    let camera = CameraConfig::preset(&a.camera)?;
+    let camera = a.camera.camera();
     let opts = SynthOptions {
         category: a.category,
         count: a.count,

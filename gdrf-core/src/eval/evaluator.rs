@@ -48,7 +48,7 @@ pub struct EvalOptions {
     /// Render resolution (default: the dataset's).
     pub resolution: Option<i64>,
     /// Coarse samples per ray (as many fine).
-    pub steps: i64,
+    pub samples: i64,
     pub seed: u64,
     pub features: FeatureKind,
     pub effnet_weights: PathBuf,
@@ -256,10 +256,10 @@ impl Evaluator {
         device: Device,
         progress: &mut dyn FnMut(&str, i64, i64),
     ) -> Result<Self> {
-        if opts.num < 2 || opts.swap < 2 || opts.steps < 2 {
+        if opts.num < 2 || opts.swap < 2 || opts.samples < 2 {
             return Err(Error::Invalid(format!(
-                "eval needs num ≥ 2, swap ≥ 2 and steps ≥ 2, got {}, {}, {}",
-                opts.num, opts.swap, opts.steps
+                "eval needs num ≥ 2, swap ≥ 2 and samples ≥ 2, got {}, {}, {}",
+                opts.num, opts.swap, opts.samples
             )));
         }
         if !(opts.psi.is_finite() && opts.psi >= 0.0) {
@@ -458,7 +458,7 @@ impl Evaluator {
     ) -> Result<Scores> {
         let (num, k, res) = (self.opts.num, self.opts.swap, self.resolution);
         let device = g.kind_device().1;
-        let rc = RenderConfig { num_steps: self.opts.steps as usize, jitter: false, ..RenderConfig::default() };
+        let rc = RenderConfig { num_steps: self.opts.samples as usize, jitter: false, ..RenderConfig::default() };
         let latent = g.cfg.latent_dim as i64;
         let z = StepRng::new(self.opts.seed, 0, Purpose::EvalCodes, Kind::Float, device).normal(&[num, latent]);
         let poses =
@@ -601,7 +601,7 @@ pub fn score_generator(
         seed: opts.seed,
         images: opts.num,
         resolution: ev.resolution,
-        samples_per_ray: 2 * opts.steps,
+        samples_per_ray: 2 * opts.samples,
         psi: opts.psi,
         frechet: c(|s| s.frechet),
         kernel: c(|s| s.kernel),

@@ -7,7 +7,7 @@ pub const DISCRIMINATOR_INFO: &str = "discriminator";
 pub fn resolution_warning(header: &crate::checkpoint::Header, resolution: i64) -> Option<String> {
     let trained = header.trained_resolution()?;
     (trained != resolution).then(|| {
-        let steps = header.trained_coarse_samples().map(|n| format!(" --steps {n}")).unwrap_or_default();
+        let steps = header.trained_coarse_samples().map(|n| format!(" --samples {n}")).unwrap_or_default();
         format!(
             "this generator was trained at {trained}² and is rendered here at {resolution}²; \
              `--resolution {trained}{steps}` scores it where it learned, against the real images at {trained}²"
@@ -64,7 +64,7 @@ mod tests {
         assert_eq!((h.trained_resolution(), h.trained_coarse_samples()), (Some(32), Some(12)));
         assert_eq!(resolution_warning(&h, 32), None);
         let w = resolution_warning(&h, 64).unwrap();
-        assert!(w.contains("trained at 32²") && w.contains("`--resolution 32 --steps 12`"), "{w}");
+        assert!(w.contains("trained at 32²") && w.contains("`--resolution 32 --samples 12`"), "{w}");
         h.info.remove(SAMPLES_PER_RAY_INFO);
         assert!(resolution_warning(&h, 64).unwrap().contains("`--resolution 32`"));
     }

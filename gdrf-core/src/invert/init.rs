@@ -33,8 +33,10 @@ pub const INIT_KEY: &str = "gdrf_initialiser";
 pub struct InitConfig {
     /// Side of the generated training images (and of F's input).
     pub resolution: i64,
-    /// Samples per ray of the training renders (coarse; as many importance samples).
-    pub num_steps: usize,
+    /// Samples per ray of the training renders (coarse; as many importance samples);
+    /// `num_steps` in files written before it was named so.
+    #[serde(alias = "num_steps")]
+    pub samples: usize,
     /// Generated (image, pose, w_s, γ_a, β_a) tuples; the last `held_out` are validation.
     pub count: i64,
     pub held_out: i64,
@@ -55,7 +57,7 @@ impl Default for InitConfig {
     fn default() -> Self {
         Self {
             resolution: 64,
-            num_steps: 12,
+            samples: 12,
             count: 4096,
             held_out: 256,
             batch_size: 32,
@@ -76,8 +78,8 @@ impl InitConfig {
         if !(16..=512).contains(&self.resolution) {
             return bad("resolution", self.resolution.to_string(), "16 to 512");
         }
-        if self.num_steps < 3 {
-            return bad("num_steps", self.num_steps.to_string(), "at least 3");
+        if self.samples < 3 {
+            return bad("samples", self.samples.to_string(), "at least 3");
         }
         if self.held_out < 1 || self.count < self.held_out + 1 {
             return bad(
@@ -128,7 +130,7 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
     let n = cfg.count;
     let z = StepRng::new(cfg.seed, 0, Purpose::InitData, kind, device).normal(&[n, g.cfg.latent_dim as i64]);
     let poses = Poses::sample_from(cam, n, &mut StepRng::new(cfg.seed, 1, Purpose::InitData, kind, device));
-    let rc = RenderConfig { num_steps: cfg.num_steps, jitter: false, ..Default::default() };
+    let rc = RenderConfig { num_steps: cfg.samples, jitter: false, ..Default::default() };
     let r = Renderer::new(g, cam, &rc)?;
     let (mut images, mut ws, mut apps) = (Vec::new(), Vec::new(), Vec::new());
     let mut i = 0;
@@ -138,7 +140,7 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
         let (img, w, a) = tch::no_grad(|| -> Result<_> {
             let lat = g.latents(&zb, &zb, None);
             let res = cfg.resolution;
-            let noise = Noise::midpoints(b, res * res, cfg.num_steps as i64, device);
+            let noise = Noise::midpoints(b, res * res, cfg.samples as i64, device);
             let img = r.render_image(&lat, &poses.narrow(i, b), res, &noise)?.rgb;
             Ok((img, g.shape_w(&zb), g.appearance_raw(&zb)))
         })?;
@@ -366,7 +368,7 @@ pub fn train(
     let held = Tensor::arange_start(n_train, cfg.count, (Kind::Int64, device));
     let mean_w = tuples.w_s.narrow(0, 0, n_train).mean_dim(0, true, Kind::Float);
     let images_small = (cfg.image_weight > 0.0).then(|| resize(&tuples.images, cfg.image_resolution));
-    let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
+    let rc = RenderConfig { num_steps: cfg.samples, ..Default::default() };
     let renderer = Renderer::new(g, cam, &rc)?;
     let mut evals = Vec::new();
     let mut last_loss = f64::NAN;
@@ -386,7 +388,7 @@ pub fn train(
                 shape: g.shape_from_w(&w, None),
                 appearance: Film::from_raw(&tuples.appearance_raw.index_select(0, &idx)),
             };
-            let (r2, n) = (cfg.image_resolution * cfg.image_resolution, cfg.num_steps as i64);
+            let (r2, n) = (cfg.image_resolution * cfg.image_resolution, cfg.samples as i64);
             let noise = Noise::midpoints(cfg.batch_size, r2, n, device);
             let (re, _) = renderer.render_regions(&lat, &poses, cfg.image_resolution, 1, &noise)?;
             loss += (re - small.index_select(0, &idx)).square().mean(Kind::Float) * cfg.image_weight;
@@ -439,7 +441,7 @@ mod tests {
     fn cfg() -> InitConfig {
         InitConfig {
             resolution: 16,
-            num_steps: 4,
+            samples: 4,
             count: 12,
             held_out: 4,
             batch_size: 4,

@@ -48,8 +48,10 @@ pub struct InvertConfig {
     pub lr: f64,
     /// Side of the renders compared with the photo.
     pub resolution: i64,
-    /// Samples per ray, coarse (the importance pass adds as many).
-    pub num_steps: usize,
+    /// Samples per ray, coarse (the importance pass adds as many); `num_steps` in files
+    /// written before it was named so.
+    #[serde(alias = "num_steps")]
+    pub samples: usize,
     pub mse_weight: f64,
     pub perceptual_weight: f64,
     /// Weight of mean (w_s − w_s⁰)².
@@ -92,7 +94,7 @@ impl Default for InvertConfig {
             steps: 200,
             lr: 0.03,
             resolution: 64,
-            num_steps: 24,
+            samples: 24,
             mse_weight: 1.0,
             perceptual_weight: 1.0,
             prior_shape: 0.01,
@@ -120,7 +122,7 @@ impl InvertConfig {
         let d = Self::default();
         Self {
             resolution: header.trained_resolution().unwrap_or(d.resolution),
-            num_steps: header.trained_coarse_samples().map_or(d.num_steps, |n| n as usize),
+            samples: header.trained_coarse_samples().map_or(d.samples, |n| n as usize),
             ..d
         }
     }
@@ -134,8 +136,8 @@ impl InvertConfig {
         if !(4..=1024).contains(&self.resolution) {
             return bad("resolution", self.resolution.to_string(), "4 to 1024");
         }
-        if self.num_steps < 3 {
-            return bad("num_steps", self.num_steps.to_string(), "at least 3");
+        if self.samples < 3 {
+            return bad("samples", self.samples.to_string(), "at least 3");
         }
         for (k, v) in [
             ("mse_weight", self.mse_weight),
@@ -405,7 +407,7 @@ impl<'a> Inverter<'a> {
             let opt = new_adam(named_pose(&p));
             (p, opt)
         });
-        let rc = RenderConfig { num_steps: cfg.num_steps, ..Default::default() };
+        let rc = RenderConfig { num_steps: cfg.samples, ..Default::default() };
         rc.validate()?;
         let photo = photo.to_kind(Kind::Float).to_device(device);
         let targets = [cfg.resolution_at(0), cfg.resolution].into_iter().map(|r| (r, resize(&photo, r))).collect();
@@ -448,7 +450,7 @@ impl<'a> Inverter<'a> {
         let res = cfg.resolution_at(step);
         let rays = res * res;
         let rng = |p: u64| StepRng::new(cfg.seed, 3 * step as u64 + p, Purpose::InvertNoise, Kind::Float, device);
-        let n = cfg.num_steps as i64;
+        let n = cfg.samples as i64;
         let noise =
             Noise { jitter: Some(rng(0).uniform(&[1, rays, n])), importance: Some(rng(1).uniform(&[1, rays, n])) };
         let subset = (cfg.ray_fraction < 1.0).then(|| {

@@ -21,7 +21,7 @@ fn cfg(steps: usize) -> InvertConfig {
     InvertConfig {
         steps,
         resolution: 16,
-        num_steps: 8,
+        samples: 8,
         perceptual_weight: 0.0,
         lr: 0.02,
         ray_fraction: 1.0,
@@ -76,7 +76,7 @@ fn coarse_steps_patience_and_bad_settings() {
         (InvertConfig { ray_fraction: 0.0, ..cfg(1) }, "invert.ray_fraction"),
         (InvertConfig { coarse_fraction: 1.0, ..cfg(1) }, "invert.coarse_fraction"),
         (InvertConfig { prior_shape: -1.0, ..cfg(1) }, "invert.prior_shape"),
-        (InvertConfig { num_steps: 2, ..cfg(1) }, "invert.num_steps"),
+        (InvertConfig { samples: 2, ..cfg(1) }, "invert.samples"),
         (InvertConfig { grid: 2, ..cfg(1) }, "invert.grid"),
         (InvertConfig { grid_refresh: 0, ..cfg(1) }, "invert.grid_refresh"),
         (InvertConfig { grid_threshold: f64::NAN, ..cfg(1) }, "invert.grid_threshold"),

@@ -118,8 +118,10 @@ pub struct TrainEvalConfig {
     pub num: i64,
     /// Side of the swap matrix.
     pub swap: i64,
-    /// Coarse samples per ray (as many fine).
-    pub steps: i64,
+    /// Coarse samples per ray (as many fine); `steps` in configs written before it was
+    /// named so.
+    #[serde(alias = "steps")]
+    pub samples: i64,
     /// Image side the generator is scored at (0 = the dataset's).
     pub resolution: i64,
     /// Evaluation seeds (each draws other codes, poses and random end; empty = the run's
@@ -131,7 +133,7 @@ pub struct TrainEvalConfig {
 
 impl Default for TrainEvalConfig {
     fn default() -> Self {
-        Self { interval: 0, num: 200, swap: 4, steps: 12, resolution: 0, seeds: Vec::new(), probe: None }
+        Self { interval: 0, num: 200, swap: 4, samples: 12, resolution: 0, seeds: Vec::new(), probe: None }
     }
 }
 
@@ -408,10 +410,10 @@ impl TrainConfig {
             )));
         }
         let e = &self.eval;
-        if e.interval < 0 || e.num < 2 || e.swap < 2 || e.steps < 2 {
+        if e.interval < 0 || e.num < 2 || e.swap < 2 || e.samples < 2 {
             return Err(cfg_err(format!(
-                "eval: interval {}, num {}, swap {}, steps {}: expected interval ≥ 0 (0 = never) and num, swap, steps ≥ 2",
-                e.interval, e.num, e.swap, e.steps
+                "eval: interval {}, num {}, swap {}, samples {}: expected interval ≥ 0 (0 = never) and num, swap, samples ≥ 2",
+                e.interval, e.num, e.swap, e.samples
             )));
         }
         if e.resolution != 0 && !(8..=512).contains(&e.resolution) {

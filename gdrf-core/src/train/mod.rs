@@ -298,7 +298,7 @@ impl Trainer {
                 num: e.num,
                 swap: e.swap,
                 resolution: (e.resolution > 0).then_some(e.resolution),
-                steps: e.steps,
+                samples: e.samples,
                 seed: seeds[0],
                 features: FeatureKind::Efficientnet,
                 effnet_weights: crate::pretrained::effnet::EfficientNetLite0::default_path(),
