@@ -15,8 +15,11 @@ pub struct GeneratorConfig {
     pub mapping_hidden_dim: usize,
     /// Plain SIREN layers in the template density trunk T_σ.
     pub trunk_layers: usize,
-    /// FiLM layers in the colour branch T_c; the view direction enters the last one.
-    pub color_layers: usize,
+    /// FiLM layers in the colour branch T_c; the view direction enters the last one. Its
+    /// key in configs and checkpoint headers is the release's `color_layers` (a generator's
+    /// identity hashes the header, so the key stays as files have it).
+    #[serde(rename = "color_layers")]
+    pub colour_layers: usize,
     /// FiLM layers in the deformation/correction field Φ.
     pub deform_layers: usize,
     /// Scale of the density correction: Δσ = correct_scale · raw.
@@ -55,7 +58,7 @@ impl Default for GeneratorConfig {
             hidden_dim: 256,
             mapping_hidden_dim: 256,
             trunk_layers: 5,
-            color_layers: 4,
+            colour_layers: 4,
             deform_layers: 4,
             correct_scale: 100.0,
             deform_scale: 1.0,
@@ -91,10 +94,10 @@ impl GeneratorConfig {
                 self.deform_head_frequency
             )));
         }
-        if self.color_layers < 2 {
+        if self.colour_layers < 2 {
             return Err(Error::Config(format!(
                 "generator.color_layers is {}, expected at least 2 (the view direction enters the last one)",
-                self.color_layers
+                self.colour_layers
             )));
         }
         Ok(())

@@ -116,7 +116,7 @@ impl Features {
             }
             Ok(v.to_kind(kind).to_device(device))
         };
-        let colour = (g.cfg.color_layers * g.cfg.hidden_dim) as i64;
+        let colour = (g.cfg.colour_layers * g.cfg.hidden_dim) as i64;
         Ok(Self {
             w_s: take("w_s", [1, g.cfg.mapping_hidden_dim as i64])?,
             appearance: Film { gamma: take("gamma_a", [1, colour])?, beta: take("beta_a", [1, colour])? },

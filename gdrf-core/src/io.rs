@@ -60,7 +60,7 @@ pub fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
 
 /// Maps `values: (1, H, W)` in [0, 1] (clamped; NaN → 0) through viridis to an image
 /// `(3, H, W)` in [−1, 1], for depth and opacity maps.
-pub fn colormap(values: &Tensor) -> Tensor {
+pub fn colour_map(values: &Tensor) -> Tensor {
     // Viridis at 0, ¼, ½, ¾, 1, linearly interpolated.
     const STOPS: [[f64; 3]; 5] = [
         [0.267, 0.005, 0.329],
@@ -88,9 +88,9 @@ pub fn colormap(values: &Tensor) -> Tensor {
 pub fn depth_map(depth: &Tensor, near: f64, far: f64) -> Tensor {
     let d = (depth - near) / (far - near);
     if d.dim() == 3 {
-        return colormap(&d);
+        return colour_map(&d);
     }
-    Tensor::stack(&(0..d.size()[0]).map(|i| colormap(&d.get(i))).collect::<Vec<_>>(), 0)
+    Tensor::stack(&(0..d.size()[0]).map(|i| colour_map(&d.get(i))).collect::<Vec<_>>(), 0)
 }
 
 /// Writes frames as an endlessly looping animated GIF (`delay_ms` per frame), atomically.
@@ -157,7 +157,7 @@ mod tests {
     #[test]
     fn the_colour_map_runs_from_dark_violet_to_yellow() {
         let v = Tensor::from_slice(&[0.0f64, 0.5, 1.0, f64::NAN, 7.0]).view([1, 1, 5]);
-        let c = (colormap(&v) + 1.0) * 0.5;
+        let c = (colour_map(&v) + 1.0) * 0.5;
         let px = |i: i64| Vec::<f64>::try_from(c.select(2, i).view([-1])).unwrap();
         assert!((px(0)[0] - 0.267).abs() < 1e-9 && (px(0)[2] - 0.329).abs() < 1e-9);
         assert!((px(1)[1] - 0.567).abs() < 1e-9);

@@ -63,7 +63,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     rep.check("template feature f_t", &d.feature, case.want("field_feature"));
     rep.check("template σ_t", &d.sigma_t, case.want("field_sigma_t"));
     rep.check("final σ", &d.sigma, case.want("field_sigma"));
-    rep.check("colour", &g.color(&d.feature, case.get("dirs"), &app), case.want("field_rgb"));
+    rep.check("colour", &g.colour(&d.feature, case.get("dirs"), &app), case.want("field_rgb"));
     let psi = case.f("psi");
     let trunc = Truncation {
         psi,

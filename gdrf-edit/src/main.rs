@@ -6,7 +6,7 @@ mod swap;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use gdrf_core::camera::{turntable, Poses};
+use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::{load_generator, Header};
 use gdrf_core::field::generator::{FieldOptions, Generator};
 use gdrf_core::nn::mapping::seeded_randn;
@@ -74,39 +74,16 @@ struct RenderArgs {
     /// another code's appearance. Default: the shape seed's own code.
     #[arg(long, value_delimiter = ',')]
     appearance_seeds: Vec<i64>,
-    /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
-    #[arg(long, default_value_t = 1.0)]
-    psi: f64,
-    /// Image size in pixels (square). Default: where the model learned (the resolution its
-    /// checkpoint records), else 128.
-    #[arg(long)]
-    resolution: Option<i64>,
-    /// Views per seed on a turntable (yaw spread evenly over 360° from --yaw).
-    #[arg(long, default_value_t = 1)]
-    views: usize,
-    /// Camera pitch in degrees from the +y axis (default: the camera's mean pitch).
-    #[arg(long)]
-    pitch: Option<f64>,
-    /// Camera yaw in degrees of the first view.
-    #[arg(long, default_value_t = 0.0)]
-    yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more), as in gdrf-invert and
-    /// gdrf-train eval. Default: where the model learned, else 36; the authors' renders use
-    /// 96. `--steps` is the same flag (its older name: steps are optimisation steps
-    /// everywhere else).
-    #[arg(long, alias = "steps")]
-    samples: Option<usize>,
+    /// Where the camera stands, image size, samples per ray, truncation, ablations; the
+    /// turntable's views are per seed.
+    #[command(flatten)]
+    view: swap::ViewFlags,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
     /// Paint the last sample white (the authors' render and FID scripts do).
     #[arg(long)]
     force_last_white: bool,
-    /// Ablations: render the template without the deformation and/or the correction.
-    #[arg(long)]
-    no_deformation: bool,
-    #[arg(long)]
-    no_correction: bool,
     /// Run the networks' hidden layers in bfloat16 (integration stays float32). About 2×
     /// faster on GPUs and on CPUs with bfloat16 instructions (AVX512-BF16, AMX), slower
     /// elsewhere; it cost 0.7 dB against the dense reference in `gdrf-edit bench`.
@@ -249,7 +226,7 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn render(a: RenderArgs) -> Result<()> {
+fn render(mut a: RenderArgs) -> Result<()> {
     if a.seeds.is_empty() {
         bail!("--seeds: give at least one seed");
     }
@@ -260,16 +237,12 @@ fn render(a: RenderArgs) -> Result<()> {
             a.seeds.len()
         );
     }
-    if let Some(r) = a.resolution {
-        swap::check_resolution(r)?;
-    }
-    if a.views == 0 {
-        bail!("--views: expected at least 1");
-    }
+    a.view.check()?;
     let (Model { generator, camera, device: dev, learned, .. }, threads) = swap::open(&a.model)?;
-    let resolution = a.resolution.unwrap_or(learned.resolution);
+    a.view.settle(&learned);
+    let resolution = a.view.res();
     let config = RenderConfig {
-        num_steps: a.samples.unwrap_or(learned.samples),
+        num_steps: a.view.samples(),
         jitter: !a.no_jitter,
         force_last_white: a.force_last_white,
         chunk_points: a.chunk_points,
@@ -281,11 +254,7 @@ fn render(a: RenderArgs) -> Result<()> {
         ..Default::default()
     };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
-    renderer.field = FieldOptions {
-        no_deformation: a.no_deformation,
-        no_correction: a.no_correction,
-        compute_kind: a.bf16.then_some(Kind::BFloat16),
-    };
+    renderer.field = FieldOptions { compute_kind: a.bf16.then_some(Kind::BFloat16), ..a.view.field() };
 
     let latent = generator.cfg.latent_dim as i64;
     let code = |s: i64| seeded_randn(&[1, latent], s).to_device(dev);
@@ -296,11 +265,11 @@ fn render(a: RenderArgs) -> Result<()> {
         _ => a.appearance_seeds.clone(),
     };
     let z_a = Tensor::cat(&app_seeds.iter().map(|&s| code(s)).collect::<Vec<_>>(), 0);
-    let trunc = generator.truncation_at(a.psi);
+    let trunc = generator.truncation_at(a.view.psi);
     let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
 
-    let views = turntable(a.pitch.map(f64::to_radians).unwrap_or(camera.v_mean), a.yaw.to_radians(), a.views);
-    let total = a.seeds.len() * a.views;
+    let views = a.view.turntable(&camera);
+    let total = a.seeds.len() * views.len();
     let bar = ProgressBar::new(total as u64).with_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} images, {elapsed} elapsed, eta {eta}")
             .unwrap()
@@ -335,7 +304,7 @@ fn render(a: RenderArgs) -> Result<()> {
     bar.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     let rgb = Tensor::cat(&rgb, 0);
-    let cols = a.cols.unwrap_or(a.views as i64);
+    let cols = a.cols.unwrap_or(views.len() as i64);
     if cols < 1 {
         bail!("--cols {cols}: expected at least 1");
     }
@@ -366,7 +335,7 @@ mod tests {
     #[test]
     fn render_takes_the_samples_per_ray_as_steps_or_samples() {
         let steps = |flag: &str| match Cli::try_parse_from(["gdrf-edit", "render", flag, "8"]).unwrap().command {
-            Some(Command::Render(a)) => a.samples,
+            Some(Command::Render(a)) => a.view.samples,
             _ => unreachable!("parsed as render"),
         };
         assert_eq!((steps("--steps"), steps("--samples")), (Some(8), Some(8)));

@@ -108,7 +108,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
                 _ => {
                     let pose = Poses::from_angles(&[(model.camera.v_mean, 0.0)], kind, device);
                     let dir = normalize(&-camera_origins(&pose, 1.0)).view([1, 1, 3]).expand_as(&x);
-                    g.color(&d.feature, &dir, &lat.appearance)
+                    g.colour(&d.feature, &dir, &lat.appearance)
                 }
             }
         });

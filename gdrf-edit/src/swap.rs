@@ -2,7 +2,7 @@
 //! another, a swap matrix over several sources, and feature files of seeds. Density never
 //! depends on the appearance, so the shape side of each (shape, view) is computed once and
 //! only the colour branch runs again for each appearance.
-use crate::{load_model, Model};
+use crate::{load_model, Learned, Model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{release_ellipse, turntable, Poses, Rays};
@@ -50,77 +50,43 @@ pub struct ModelArgs {
     photo_steps: usize,
 }
 
+/// The view flags of every rendering subcommand: image size, samples per ray, where the
+/// camera stands, truncation and the template ablations.
 #[derive(Args)]
-pub struct ViewArgs {
+pub struct ViewFlags {
     /// Image size in pixels (square). Default: where the model learned (the resolution its
     /// checkpoint records), else 128.
     #[arg(long)]
-    resolution: Option<i64>,
+    pub(crate) resolution: Option<i64>,
     /// Views on a turntable (yaw spread evenly over 360° from --yaw at --pitch); --orbit is
     /// the same.
     #[arg(long, visible_alias = "orbit", default_value_t = 1)]
-    views: usize,
+    pub(crate) views: usize,
     /// Camera pitch in degrees from the +y axis (default: the camera's mean pitch).
     #[arg(long)]
-    pitch: Option<f64>,
+    pub(crate) pitch: Option<f64>,
     /// Camera yaw in degrees of the first view.
     #[arg(long, default_value_t = 0.0)]
-    yaw: f64,
+    pub(crate) yaw: f64,
     /// Coarse samples per ray N (the importance pass adds N more), as in gdrf-invert and
-    /// gdrf-train eval. Default: where the model learned, else 36. `--steps` is the same
-    /// flag (its older name: steps are optimisation steps everywhere else).
+    /// gdrf-train eval. Default: where the model learned, else 36; the authors' renders use
+    /// 96. `--steps` is the same flag (its older name: steps are optimisation steps
+    /// everywhere else).
     #[arg(long, alias = "steps")]
-    samples: Option<usize>,
+    pub(crate) samples: Option<usize>,
     /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
     #[arg(long, default_value_t = 1.0)]
-    psi: f64,
-    /// Seed of the stratified jitter and importance uniforms; every image of a view uses the
-    /// same ones, so images differ only by what was edited.
-    #[arg(long, default_value_t = 0)]
-    noise_seed: u64,
-    /// `release`: the authors' render script — N = 96, ψ = 0.7, last sample painted white
-    /// (overrides --steps and --psi).
-    #[arg(long, value_parser = ["release"])]
-    preset: Option<String>,
-    /// Follow the release's elliptical camera path (pitch and yaw both swing by the camera's
-    /// spread) over --views instead of a turntable.
-    #[arg(long)]
-    ellipse: bool,
+    pub(crate) psi: f64,
     /// Ablations (the paper's template figure): without the deformation Δx and/or the
     /// correction Δσ.
     #[arg(long)]
-    no_deformation: bool,
+    pub(crate) no_deformation: bool,
     #[arg(long)]
-    no_correction: bool,
+    pub(crate) no_correction: bool,
 }
 
-impl ViewArgs {
-    /// Applies `--preset`, and renders where `model` learned unless told otherwise.
-    fn resolved(mut self, model: &Model) -> Self {
-        if self.preset.as_deref() == Some("release") {
-            self.samples = Some(96);
-            self.psi = 0.7;
-        }
-        self.resolution.get_or_insert(model.learned.resolution);
-        self.samples.get_or_insert(model.learned.samples);
-        self
-    }
-
-    /// The image size, once [`Self::resolved`].
-    fn res(&self) -> i64 {
-        self.resolution.expect("ViewArgs::resolved sets the resolution")
-    }
-
-    /// The coarse samples per ray, once [`Self::resolved`].
-    fn samples(&self) -> usize {
-        self.samples.expect("ViewArgs::resolved sets the samples per ray")
-    }
-
-    fn field(&self) -> FieldOptions {
-        FieldOptions { no_deformation: self.no_deformation, no_correction: self.no_correction, ..Default::default() }
-    }
-
-    fn check(&self) -> Result<()> {
+impl ViewFlags {
+    pub(crate) fn check(&self) -> Result<()> {
         if let Some(r) = self.resolution {
             check_resolution(r)?;
         }
@@ -138,15 +104,86 @@ impl ViewArgs {
         Ok(())
     }
 
-    /// (pitch, yaw) in radians of each view: a turntable at --pitch, or with --ellipse the
-    /// release's path θ = h_mean + h_std·cos a, v = v_mean + v_std·sin a over
-    /// a = linspace(0, 2π, views) (v converted by arccos(1 − 2v/π) for spherical-uniform
-    /// cameras, as the release does).
+    /// Renders where `learned` says the model learned unless told otherwise.
+    pub(crate) fn settle(&mut self, learned: &Learned) {
+        self.resolution.get_or_insert(learned.resolution);
+        self.samples.get_or_insert(learned.samples);
+    }
+
+    /// The image size, once [`Self::settle`]d.
+    pub(crate) fn res(&self) -> i64 {
+        self.resolution.expect("ViewFlags::settle sets the resolution")
+    }
+
+    /// The coarse samples per ray, once [`Self::settle`]d.
+    pub(crate) fn samples(&self) -> usize {
+        self.samples.expect("ViewFlags::settle sets the samples per ray")
+    }
+
+    pub(crate) fn field(&self) -> FieldOptions {
+        FieldOptions { no_deformation: self.no_deformation, no_correction: self.no_correction, ..Default::default() }
+    }
+
+    /// (pitch, yaw) in radians of each view on the turntable at --pitch from --yaw.
+    pub(crate) fn turntable(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
+        turntable(self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean), self.yaw.to_radians(), self.views)
+    }
+}
+
+/// The view flags with what the editing subcommands add: seeded noise shared by every image
+/// of a view, the release's preset and its elliptical path.
+#[derive(Args)]
+pub struct ViewArgs {
+    #[command(flatten)]
+    pub(crate) flags: ViewFlags,
+    /// Seed of the stratified jitter and importance uniforms; every image of a view uses the
+    /// same ones, so images differ only by what was edited.
+    #[arg(long, default_value_t = 0)]
+    noise_seed: u64,
+    /// `release`: the authors' render script — N = 96, ψ = 0.7, last sample painted white
+    /// (overrides --samples and --psi).
+    #[arg(long, value_parser = ["release"])]
+    preset: Option<String>,
+    /// Follow the release's elliptical camera path (pitch and yaw both swing by the camera's
+    /// spread) over --views instead of a turntable.
+    #[arg(long)]
+    ellipse: bool,
+}
+
+impl ViewArgs {
+    /// Applies `--preset`, and renders where `model` learned unless told otherwise.
+    fn resolved(mut self, model: &Model) -> Self {
+        if self.preset.as_deref() == Some("release") {
+            self.flags.samples = Some(96);
+            self.flags.psi = 0.7;
+        }
+        self.flags.settle(&model.learned);
+        self
+    }
+
+    fn check(&self) -> Result<()> {
+        self.flags.check()
+    }
+
+    fn res(&self) -> i64 {
+        self.flags.res()
+    }
+
+    fn samples(&self) -> usize {
+        self.flags.samples()
+    }
+
+    fn field(&self) -> FieldOptions {
+        self.flags.field()
+    }
+
+    /// (pitch, yaw) in radians of each view: the turntable, or with --ellipse the release's
+    /// path ([`release_ellipse`]).
     fn poses(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
         if self.ellipse {
-            return release_ellipse(cam, self.views);
+            return release_ellipse(cam, self.flags.views);
         }
-        turntable(self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean), self.yaw.to_radians(), self.views)
+        self.flags.turntable(cam)
     }
 
     fn render_config(&self) -> RenderConfig {
@@ -297,7 +334,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
         (resolve(&model, &shape_from, "--shape-from")?, resolve(&model, &appearance_from, "--appearance-from")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
     let g = &model.generator;
-    let trunc = g.truncation_at(a.view.psi);
+    let trunc = g.truncation_at(a.view.flags.psi);
     let lat = latents(g, &shape, &appearance, trunc.as_ref());
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
@@ -316,7 +353,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
             io::save_png(&a.out.join(format!("depth-{k:03}.png")), &io::to_rgb8(&depth, false)?)?;
             io::save_png(
                 &a.out.join(format!("opacity-{k:03}.png")),
-                &io::to_rgb8(&io::colormap(&img.opacity.get(0)), false)?,
+                &io::to_rgb8(&io::colour_map(&img.opacity.get(0)), false)?,
             )?;
         }
         frames.push(img.rgb);
@@ -346,7 +383,7 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
         .map(|(i, s)| resolve(&model, s, &format!("--sources (entry {})", i + 1)))
         .collect::<Result<_>>()?;
     let k = features.len() as i64;
-    let trunc = g.truncation_at(a.view.psi);
+    let trunc = g.truncation_at(a.view.flags.psi);
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
@@ -483,7 +520,7 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
         What::Appearance => Interpolate::Appearance,
         What::Both => Interpolate::Both,
     };
-    let trunc = g.truncation_at(a.view.psi);
+    let trunc = g.truncation_at(a.view.flags.psi);
     let rc = a.view.render_config();
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
@@ -549,7 +586,7 @@ mod tests {
             #[command(flatten)]
             view: ViewArgs,
         }
-        let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.samples;
+        let steps = |args: &[&str]| <Cli as clap::Parser>::try_parse_from(args).unwrap().view.flags.samples;
         assert_eq!(steps(&["x"]), None, "default: where the model learned");
         assert_eq!(steps(&["x", "--steps", "8"]), Some(8));
         assert_eq!(steps(&["x", "--samples", "8"]), Some(8));
@@ -595,17 +632,19 @@ mod tests {
 
     fn view() -> ViewArgs {
         ViewArgs {
-            resolution: Some(12),
-            views: 1,
-            pitch: None,
-            yaw: 30.0,
-            samples: Some(6),
-            psi: 1.0,
+            flags: ViewFlags {
+                resolution: Some(12),
+                views: 1,
+                pitch: None,
+                yaw: 30.0,
+                samples: Some(6),
+                psi: 1.0,
+                no_deformation: false,
+                no_correction: false,
+            },
             noise_seed: 3,
             preset: None,
             ellipse: false,
-            no_deformation: false,
-            no_correction: false,
         }
     }
 
@@ -653,7 +692,8 @@ mod tests {
 
     #[test]
     fn the_ellipse_path_is_the_releases() {
-        let v = ViewArgs { ellipse: true, views: 5, ..view() };
+        let mut v = ViewArgs { ellipse: true, ..view() };
+        v.flags.views = 5;
         let cam = CameraConfig::chair();
         let p = v.poses(&cam);
         assert_eq!(p.len(), 5);
@@ -674,9 +714,9 @@ mod tests {
             let e = v.check().unwrap_err().to_string();
             assert!(e.contains(flag), "{flag}: {e}");
         };
-        bad(&|v| v.resolution = Some(4), "--resolution");
-        bad(&|v| v.views = 0, "--views");
-        bad(&|v| v.pitch = Some(200.0), "--pitch");
-        bad(&|v| v.psi = -1.0, "--psi");
+        bad(&|v| v.flags.resolution = Some(4), "--resolution");
+        bad(&|v| v.flags.views = 0, "--views");
+        bad(&|v| v.flags.pitch = Some(200.0), "--pitch");
+        bad(&|v| v.flags.psi = -1.0, "--psi");
     }
 }

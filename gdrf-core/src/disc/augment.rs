@@ -35,7 +35,7 @@ pub enum Augmentation {
 
 /// Brightness, saturation and contrast with the given factors, each `(B)`:
 /// `x + b`, then `(x − mean_c x)·s + mean_c x`, then `(x − mean x)·c + mean x`.
-pub fn color(img: &Tensor, brightness: &Tensor, saturation: &Tensor, contrast: &Tensor) -> Tensor {
+pub fn colour(img: &Tensor, brightness: &Tensor, saturation: &Tensor, contrast: &Tensor) -> Tensor {
     let per = |t: &Tensor| t.to_kind(img.kind()).view([-1, 1, 1, 1]);
     let x = img + per(brightness);
     let m = x.mean_dim(1, true, x.kind());
@@ -107,7 +107,7 @@ pub fn augment(img: &Tensor, ops: &[Augmentation], fill: f64, rng: &mut dyn Rand
     if ops.contains(&Augmentation::Color) {
         let mut u = || rng.uniform(&[b]).to_device(img.device());
         let (br, sa, co) = (u() - 0.5, u() * 2.0, u() + 0.5);
-        x = color(&x, &br, &sa, &co);
+        x = colour(&x, &br, &sa, &co);
     }
     if ops.contains(&Augmentation::Translation) {
         let (sy, sx) = ((h as f64 / 8.0 + 0.5) as i64, (w as f64 / 8.0 + 0.5) as i64);
@@ -213,19 +213,19 @@ mod tests {
         let img = Tensor::from_slice(&[0.2f32, 0.0, -0.4, 0.0, 0.5, 0.0]).view([1, 3, 1, 2]);
         let one = |v: f32| Tensor::from_slice(&[v]);
         // Brightness alone.
-        let out = color(&img, &one(0.25), &one(1.0), &one(1.0));
+        let out = colour(&img, &one(0.25), &one(1.0), &one(1.0));
         let want = [0.45f32, 0.25, -0.15, 0.25, 0.75, 0.25];
         for (g, w) in Vec::<f32>::try_from(out.flatten(0, -1)).unwrap().iter().zip(want) {
             assert!((g - w).abs() <= 1e-6, "{g} vs {w}");
         }
         // Saturation 0: every channel becomes the pixel's channel mean (0.1 and 0).
-        let out = color(&img, &one(0.0), &one(0.0), &one(1.0));
+        let out = colour(&img, &one(0.0), &one(0.0), &one(1.0));
         let want = [0.1f32, 0.0, 0.1, 0.0, 0.1, 0.0];
         for (g, w) in Vec::<f32>::try_from(out.flatten(0, -1)).unwrap().iter().zip(want) {
             assert!((g - w).abs() <= 1e-6, "{g} vs {w}");
         }
         // Contrast 0.5 about the image mean 0.05.
-        let out = color(&img, &one(0.0), &one(1.0), &one(0.5));
+        let out = colour(&img, &one(0.0), &one(1.0), &one(0.5));
         let want = [0.125f32, 0.025, -0.175, 0.025, 0.275, 0.025];
         for (g, w) in Vec::<f32>::try_from(out.flatten(0, -1)).unwrap().iter().zip(want) {
             assert!((g - w).abs() <= 1e-6, "{g} vs {w}");

@@ -88,7 +88,7 @@ impl Generator {
         Ok(Self {
             cfg: cfg.clone(),
             template: TemplateField::new(vs / "template", cfg),
-            appearance_mapping: MappingNetwork::new(vs / "appearance_mapping", z, m, 2 * cfg.color_layers * h),
+            appearance_mapping: MappingNetwork::new(vs / "appearance_mapping", z, m, 2 * cfg.colour_layers * h),
             deform: DeformField::new(vs / "deform", cfg),
             shape_mapping: MappingNetwork::new(vs / "shape_mapping", z, m, 2 * cfg.deform_layers * h),
         })
@@ -155,8 +155,8 @@ impl Generator {
 
     /// Colour query (the appearance side): `feature: (B, P, H)`, `dirs: (B, P, 3)` → rgb
     /// `(B, P, 3)` in (0, 1).
-    pub fn color(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
-        let rgb = self.template.color(feature, &crate::nn::like(dirs, feature), appearance);
+    pub fn colour(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
+        let rgb = self.template.colour(feature, &crate::nn::like(dirs, feature), appearance);
         crate::nn::like(&rgb, dirs)
     }
 
@@ -174,7 +174,7 @@ impl Generator {
     /// Full query: `(rgb: (B, P, 3), σ: (B, P, 1))`.
     pub fn forward(&self, x: &Tensor, dirs: &Tensor, latents: &Latents) -> (Tensor, Tensor) {
         let d = self.density(x, &latents.shape, FieldOptions::default());
-        (self.color(&d.feature, dirs, &latents.appearance), d.sigma)
+        (self.colour(&d.feature, dirs, &latents.appearance), d.sigma)
     }
 
     /// Dtype and device of the parameters.

@@ -27,7 +27,7 @@ impl RadianceField for generator::Generator {
         (d.sigma, d.feature)
     }
     fn radiance(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
-        self.color(feature, dirs, appearance)
+        self.colour(feature, dirs, appearance)
     }
     fn kind_device(&self) -> (Kind, Device) {
         generator::Generator::kind_device(self)

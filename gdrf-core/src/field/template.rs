@@ -14,7 +14,7 @@ use tch::{nn, Kind, Tensor};
 pub struct TemplateField {
     pub trunk: Vec<SineLayer>,
     pub sigma_head: Linear,
-    pub color: Vec<FilmLayer>,
+    pub colour: Vec<FilmLayer>,
     pub rgb_head: Linear,
     hidden: usize,
 }
@@ -29,18 +29,19 @@ impl TemplateField {
             })
             .collect();
         let sigma_head = Linear::new(vs.clone() / "sigma_head", h, 1, WeightInit::Frequency(30.0));
-        let last = cfg.color_layers - 1;
-        let color = (0..cfg.color_layers)
+        let last = cfg.colour_layers - 1;
+        let colour = (0..cfg.colour_layers)
             .map(|i| {
                 // The release gives colour layer 0 the first-layer rule U(±1/fan_in) although
                 // its input is the 256-d feature; the direction is prepended to the last layer.
                 let init = if i == 0 { WeightInit::FirstLayer } else { WeightInit::Frequency(25.0) };
                 let inp = if i == last { h + 3 } else { h };
+                // "color": the release's parameter names, which checkpoints carry.
                 FilmLayer::new(vs.clone() / "color" / i, inp, h, init)
             })
             .collect();
         let rgb_head = Linear::new(vs / "rgb_head", h, 3, WeightInit::Frequency(25.0));
-        Self { trunk, sigma_head, color, rgb_head, hidden: h }
+        Self { trunk, sigma_head, colour, rgb_head, hidden: h }
     }
 
     /// Density query. `x_t: (B, P, 3)` template-space points → `(f_t: (B, P, H),
@@ -64,10 +65,10 @@ impl TemplateField {
     }
 
     /// Colour query. `f_t: (B, P, H)`, `dirs: (B, P, 3)` → rgb `(B, P, 3)` in (0, 1).
-    pub fn color(&self, f_t: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
-        let last = self.color.len() - 1;
+    pub fn colour(&self, f_t: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
+        let last = self.colour.len() - 1;
         let mut h = f_t.shallow_clone();
-        for (i, layer) in self.color.iter().enumerate() {
+        for (i, layer) in self.colour.iter().enumerate() {
             if i == last {
                 h = Tensor::cat(&[dirs, &h], -1);
             }

@@ -389,7 +389,7 @@ impl<'a> Inverter<'a> {
         }
         let (kind, device) = g.kind_device();
         let hidden = g.cfg.mapping_hidden_dim as i64;
-        let colour = 2 * (g.cfg.color_layers * g.cfg.hidden_dim) as i64;
+        let colour = 2 * (g.cfg.colour_layers * g.cfg.hidden_dim) as i64;
         if start.w_s.size() != [1, hidden] || start.appearance_raw.size() != [1, colour] {
             return Err(Error::Invalid(format!(
                 "start features have shapes {:?} and {:?}, expected [1, {hidden}] and [1, {colour}]",

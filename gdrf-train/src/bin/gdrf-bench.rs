@@ -328,7 +328,7 @@ fn step_reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result
         ("hidden-dim", g.hidden_dim.to_string()),
         ("mapping-hidden-dim", g.mapping_hidden_dim.to_string()),
         ("trunk-layers", g.trunk_layers.to_string()),
-        ("color-layers", g.color_layers.to_string()),
+        ("color-layers", g.colour_layers.to_string()),
         ("deform-layers", g.deform_layers.to_string()),
         ("correct-scale", g.correct_scale.to_string()),
         ("disc-channels", list(&cfg.discriminator.channels.iter().map(|c| c.to_string()).collect::<Vec<_>>())),
