@@ -2,20 +2,21 @@
 //! taken from different codes. `gdrf-edit --shape-from A --appearance-from B` is the swap.
 mod bench;
 mod mesh_cmd;
+mod model;
 mod swap;
+mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use gdrf_core::camera::Poses;
-use gdrf_core::checkpoint::{load_generator, Header};
-use gdrf_core::field::generator::{FieldOptions, Generator};
+use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::{GridConfig, Noise, OccupancyGrid, Renderer};
-use gdrf_core::{io, CameraConfig, GeneratorConfig, RenderConfig};
+use gdrf_core::{io, RenderConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::time::Instant;
-use tch::{nn, Kind, Tensor};
+use tch::{Kind, Tensor};
 
 /// Render and edit GDRF generators: novel views, shape/appearance swaps.
 ///
@@ -65,7 +66,7 @@ enum Command {
 #[derive(Args)]
 struct RenderArgs {
     #[command(flatten)]
-    model: swap::ModelArgs,
+    model: model::ModelArgs,
     /// Latent seeds, comma separated: seed s draws z = randn(1, latent) after
     /// manual_seed(s), as the authors' scripts do (same z as PyTorch's CPU generator).
     #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
@@ -77,7 +78,7 @@ struct RenderArgs {
     /// Where the camera stands, image size, samples per ray, truncation, ablations; the
     /// turntable's views are per seed.
     #[command(flatten)]
-    view: swap::ViewFlags,
+    view: view::ViewFlags,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
@@ -143,69 +144,6 @@ struct RenderArgs {
     depth_out: Option<PathBuf>,
 }
 
-/// A loaded generator with what rendering and editing need beside it.
-pub struct Model {
-    pub _vs: nn::VarStore,
-    pub generator: Generator,
-    pub camera: CameraConfig,
-    pub device: tch::Device,
-    /// The generator's identity, which feature files carry.
-    pub id: String,
-    /// How photo sources are inverted.
-    pub photo: swap::PhotoSettings,
-    /// Where the generator learned: the default resolution and samples per ray.
-    pub learned: Learned,
-}
-
-/// The resolution and coarse samples per ray of the generator's last training step (its
-/// checkpoint records them), else 128² and 36: what the commands render by default.
-pub struct Learned {
-    pub resolution: i64,
-    pub samples: usize,
-}
-
-impl Learned {
-    fn of(header: &Header) -> Self {
-        Self {
-            resolution: header.trained_resolution().unwrap_or(128),
-            samples: header.trained_coarse_samples().map_or(36, |n| n as usize),
-        }
-    }
-}
-
-/// The generator of `checkpoint`, or a randomly initialised one (the release's
-/// initialisation, seeded by `init_seed`) for `None` (`--random-init`).
-pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch::Device) -> Result<Model> {
-    let (vs, generator, header) = match checkpoint {
-        Some(p) => {
-            let l =
-                load_generator(p, dev, Kind::Float).with_context(|| format!("loading --checkpoint {}", p.display()))?;
-            (l.vs, l.generator, l.header)
-        }
-        None => {
-            eprintln!("--random-init: a randomly initialised generator (seed {init_seed})");
-            let vs = nn::VarStore::new(dev);
-            let cfg = GeneratorConfig::default();
-            let g = gdrf_core::rng::with_global_seed(init_seed, || Generator::new(&vs.root(), &cfg))?;
-            (vs, g, Header::generator(cfg, Some(CameraConfig::chair())))
-        }
-    };
-    let id = gdrf_core::edit::generator_id(&vs, &generator);
-    let learned = Learned::of(&header);
-    Ok(Model {
-        _vs: vs,
-        generator,
-        camera: header.camera.clone().unwrap_or_default(),
-        device: dev,
-        id,
-        photo: swap::PhotoSettings {
-            cfg: gdrf_core::invert::InvertConfig::where_learned(&header),
-            ..Default::default()
-        },
-        learned,
-    })
-}
-
 fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("error: {e:#}");
@@ -238,7 +176,7 @@ fn render(mut a: RenderArgs) -> Result<()> {
         );
     }
     a.view.check()?;
-    let (Model { generator, camera, device: dev, learned, .. }, threads) = swap::open(&a.model)?;
+    let (model::Model { generator, camera, device: dev, learned, .. }, threads) = model::open(&a.model)?;
     a.view.settle(&learned);
     let resolution = a.view.res();
     let config = RenderConfig {

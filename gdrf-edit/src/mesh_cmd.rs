@@ -1,7 +1,7 @@
 //! `gdrf-edit mesh`: an isosurface of a source's final density, coloured by the generator or
 //! by each vertex's template-space position (x + Δx), so that corresponding parts of
 //! different shapes get the same colour.
-use crate::swap::{open, resolve, ModelArgs};
+use crate::model::{open, resolve, ModelArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{camera_origins, normalize, Poses};

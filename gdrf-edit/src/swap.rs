@@ -2,202 +2,17 @@
 //! another, a swap matrix over several sources, and feature files of seeds. Density never
 //! depends on the appearance, so the shape side of each (shape, view) is computed once and
 //! only the colour branch runs again for each appearance.
-use crate::{load_model, Learned, Model};
+use crate::model::{open, resolve, ModelArgs};
+use crate::view::ViewArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use gdrf_core::camera::{release_ellipse, turntable, Poses, Rays};
-use gdrf_core::config::CameraPreset;
+use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
-use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::render::{Noise, Renderer};
-use gdrf_core::rng::{Purpose, RandomSource, StepRng};
-use gdrf_core::{device, io, CameraConfig, Latents, RenderConfig};
+use gdrf_core::{io, Latents};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{Kind, Tensor};
-
-#[derive(Args)]
-pub struct ModelArgs {
-    /// Generator checkpoint (.safetensors; --generator is the same). Default: the shipped
-    /// model (models/chairs-campaign).
-    #[arg(long, visible_alias = "generator", value_name = "FILE", conflicts_with = "random_init")]
-    checkpoint: Option<PathBuf>,
-    /// A randomly initialised generator (the release's initialisation, seeded by
-    /// --init-seed) instead of a checkpoint.
-    #[arg(long)]
-    random_init: bool,
-    /// Seed of --random-init's generator.
-    #[arg(long, default_value_t = 0)]
-    init_seed: i64,
-    /// auto, cpu, cuda or cuda:N.
-    #[arg(long, default_value = "auto")]
-    device: String,
-    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
-    /// camera stored with the checkpoint.
-    #[arg(long, value_enum)]
-    camera: Option<CameraPreset>,
-    /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
-    /// where the generator learned; gdrf-invert writes a reusable feature file): the
-    /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, else the
-    /// camera's mean pose).
-    #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
-    photo_pose: Option<String>,
-    /// The initialiser for photo sources (gdrf-invert train-init).
-    #[arg(long, value_name = "FILE")]
-    photo_init: Option<PathBuf>,
-    /// Optimisation steps for photo sources.
-    #[arg(long, default_value_t = gdrf_core::invert::InvertConfig::default().steps)]
-    photo_steps: usize,
-}
-
-/// The view flags of every rendering subcommand: image size, samples per ray, where the
-/// camera stands, truncation and the template ablations.
-#[derive(Args)]
-pub struct ViewFlags {
-    /// Image size in pixels (square). Default: where the model learned (the resolution its
-    /// checkpoint records), else 128.
-    #[arg(long)]
-    pub(crate) resolution: Option<i64>,
-    /// Views on a turntable (yaw spread evenly over 360° from --yaw at --pitch); --orbit is
-    /// the same.
-    #[arg(long, visible_alias = "orbit", default_value_t = 1)]
-    pub(crate) views: usize,
-    /// Camera pitch in degrees from the +y axis (default: the camera's mean pitch).
-    #[arg(long)]
-    pub(crate) pitch: Option<f64>,
-    /// Camera yaw in degrees of the first view.
-    #[arg(long, default_value_t = 0.0)]
-    pub(crate) yaw: f64,
-    /// Coarse samples per ray N (the importance pass adds N more), as in gdrf-invert and
-    /// gdrf-train eval. Default: where the model learned, else 36; the authors' renders use
-    /// 96. `--steps` is the same flag (its older name: steps are optimisation steps
-    /// everywhere else).
-    #[arg(long, alias = "steps")]
-    pub(crate) samples: Option<usize>,
-    /// Truncation ψ toward the mean mapping output (1 = none; the authors render with 0.7).
-    #[arg(long, default_value_t = 1.0)]
-    pub(crate) psi: f64,
-    /// Ablations (the paper's template figure): without the deformation Δx and/or the
-    /// correction Δσ.
-    #[arg(long)]
-    pub(crate) no_deformation: bool,
-    #[arg(long)]
-    pub(crate) no_correction: bool,
-}
-
-impl ViewFlags {
-    pub(crate) fn check(&self) -> Result<()> {
-        if let Some(r) = self.resolution {
-            check_resolution(r)?;
-        }
-        if self.views == 0 || self.views > 3600 {
-            bail!("--views {}: expected 1 to 3600", self.views);
-        }
-        if let Some(p) = self.pitch {
-            if !(0.0..=180.0).contains(&p) {
-                bail!("--pitch {p}: expected degrees from the +y axis in [0, 180]");
-            }
-        }
-        if !self.yaw.is_finite() || !(0.0..=4.0).contains(&self.psi) {
-            bail!("--yaw {} / --psi {}: expected a finite yaw and ψ in [0, 4]", self.yaw, self.psi);
-        }
-        Ok(())
-    }
-
-    /// Renders where `learned` says the model learned unless told otherwise.
-    pub(crate) fn settle(&mut self, learned: &Learned) {
-        self.resolution.get_or_insert(learned.resolution);
-        self.samples.get_or_insert(learned.samples);
-    }
-
-    /// The image size, once [`Self::settle`]d.
-    pub(crate) fn res(&self) -> i64 {
-        self.resolution.expect("ViewFlags::settle sets the resolution")
-    }
-
-    /// The coarse samples per ray, once [`Self::settle`]d.
-    pub(crate) fn samples(&self) -> usize {
-        self.samples.expect("ViewFlags::settle sets the samples per ray")
-    }
-
-    pub(crate) fn field(&self) -> FieldOptions {
-        FieldOptions { no_deformation: self.no_deformation, no_correction: self.no_correction, ..Default::default() }
-    }
-
-    /// (pitch, yaw) in radians of each view on the turntable at --pitch from --yaw.
-    pub(crate) fn turntable(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
-        turntable(self.pitch.map(f64::to_radians).unwrap_or(cam.v_mean), self.yaw.to_radians(), self.views)
-    }
-}
-
-/// The view flags with what the editing subcommands add: seeded noise shared by every image
-/// of a view, the release's preset and its elliptical path.
-#[derive(Args)]
-pub struct ViewArgs {
-    #[command(flatten)]
-    pub(crate) flags: ViewFlags,
-    /// Seed of the stratified jitter and importance uniforms; every image of a view uses the
-    /// same ones, so images differ only by what was edited.
-    #[arg(long, default_value_t = 0)]
-    noise_seed: u64,
-    /// `release`: the authors' render script — N = 96, ψ = 0.7, last sample painted white
-    /// (overrides --samples and --psi).
-    #[arg(long, value_parser = ["release"])]
-    preset: Option<String>,
-    /// Follow the release's elliptical camera path (pitch and yaw both swing by the camera's
-    /// spread) over --views instead of a turntable.
-    #[arg(long)]
-    ellipse: bool,
-}
-
-impl ViewArgs {
-    /// Applies `--preset`, and renders where `model` learned unless told otherwise.
-    fn resolved(mut self, model: &Model) -> Self {
-        if self.preset.as_deref() == Some("release") {
-            self.flags.samples = Some(96);
-            self.flags.psi = 0.7;
-        }
-        self.flags.settle(&model.learned);
-        self
-    }
-
-    fn check(&self) -> Result<()> {
-        self.flags.check()
-    }
-
-    fn res(&self) -> i64 {
-        self.flags.res()
-    }
-
-    fn samples(&self) -> usize {
-        self.flags.samples()
-    }
-
-    fn field(&self) -> FieldOptions {
-        self.flags.field()
-    }
-
-    /// (pitch, yaw) in radians of each view: the turntable, or with --ellipse the release's
-    /// path ([`release_ellipse`]).
-    fn poses(&self, cam: &CameraConfig) -> Vec<(f64, f64)> {
-        if self.ellipse {
-            return release_ellipse(cam, self.flags.views);
-        }
-        self.flags.turntable(cam)
-    }
-
-    fn render_config(&self) -> RenderConfig {
-        let force_last_white = self.preset.as_deref() == Some("release");
-        RenderConfig { num_steps: self.samples(), force_last_white, ..Default::default() }
-    }
-
-    /// The jitter and importance uniforms of view `k`, shared by every image of that view.
-    fn noise(&self, k: usize, rays: i64, device: tch::Device) -> Noise {
-        let n = self.samples() as i64;
-        let rng = |i: u64| StepRng::new(self.noise_seed, 2 * k as u64 + i, Purpose::EditNoise, Kind::Float, device);
-        Noise { jitter: Some(rng(0).uniform(&[1, rays, n])), importance: Some(rng(1).uniform(&[1, rays, n])) }
-    }
-}
 
 #[derive(Args)]
 pub struct SwapArgs {
@@ -253,66 +68,6 @@ pub struct FeaturesArgs {
     /// Output feature file (.safetensors).
     #[arg(long, short)]
     out: PathBuf,
-}
-
-pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
-    let threads = device::init_threads();
-    let dev = device::select(&m.device)?;
-    let checkpoint = (!m.random_init).then(|| m.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator));
-    let mut model = load_model(checkpoint.as_deref(), m.init_seed, dev)?;
-    if let Some(preset) = m.camera {
-        model.camera = preset.camera();
-    }
-    model.photo = PhotoSettings {
-        pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
-        init: m.photo_init.clone(),
-        cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..model.photo.cfg.clone() },
-    };
-    model.photo.cfg.validate()?;
-    Ok((model, threads))
-}
-
-/// The image sizes every subcommand renders.
-pub fn check_resolution(r: i64) -> Result<()> {
-    if !(8..=4096).contains(&r) {
-        bail!("--resolution {r}: expected 8 to 4096 pixels");
-    }
-    Ok(())
-}
-
-/// How photo sources are inverted (see [`ModelArgs`]).
-#[derive(Default)]
-pub struct PhotoSettings {
-    pub pose: Option<(f64, f64)>,
-    pub init: Option<PathBuf>,
-    pub cfg: gdrf_core::invert::InvertConfig,
-}
-
-pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
-    match source {
-        Source::Image(p) => {
-            let ph = &model.photo;
-            eprintln!(
-                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray)",
-                p.display(),
-                ph.cfg.steps,
-                ph.cfg.resolution,
-                ph.cfg.samples,
-                ph.cfg.samples
-            );
-            gdrf_core::invert::features_of_photo(
-                &model.generator,
-                &model.camera,
-                &model.id,
-                p,
-                ph.pose,
-                ph.init.as_deref(),
-                &ph.cfg,
-            )
-            .with_context(|| format!("{flag} {}", p.display()))
-        }
-        _ => Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string()),
-    }
 }
 
 impl SwapArgs {
@@ -575,8 +330,9 @@ pub fn features(a: FeaturesArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::view::ViewFlags;
     use gdrf_core::field::generator::Generator;
-    use gdrf_core::{CameraConfig, GeneratorConfig};
+    use gdrf_core::{CameraConfig, GeneratorConfig, RenderConfig};
     use tch::{nn, Device};
 
     #[test]

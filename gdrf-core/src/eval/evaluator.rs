@@ -17,6 +17,7 @@ use super::distance;
 use super::metrics::{colour_histograms, coverage, pose_errors, swap_scores, through_resolution, PoseErrors, Verdict};
 use super::probe::{self, class_histograms, Predictions, Probe, FACTORS};
 use super::provenance::{resolution_warning, trained_against_projected, SHARED_FEATURES_WARNING};
+use super::result::{Calibrated, ClassTable, EvalResult, FrameOffsets, LowResolutionEnd};
 use crate::camera::Poses;
 use crate::checkpoint::load_generator;
 use crate::data::synth;
@@ -27,7 +28,6 @@ use crate::pretrained::inception::InceptionV3;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{CameraConfig, Error, Generator, RenderConfig, Result};
-use serde::Serialize;
 use std::path::{Path, PathBuf};
 use tch::{nn, Device, Kind, Tensor};
 
@@ -63,116 +63,6 @@ pub struct EvalOptions {
     pub psi: f64,
 }
 
-/// One score at the model and at both ends.
-#[derive(Debug, Clone, Serialize)]
-pub struct Calibrated {
-    pub model: f64,
-    /// Real held-out images: what a perfect generator gets.
-    pub real: f64,
-    /// A random-weight generator of the same architecture.
-    pub random: f64,
-    /// Where the model stands: 0 at the random end, 1 at the real end.
-    pub position: f64,
-}
-
-impl Calibrated {
-    pub(crate) fn new(model: f64, real: f64, random: f64) -> Self {
-        let span = real - random;
-        let position = if span.abs() > 1e-12 { (model - random) / span } else { f64::NAN };
-        Self { model, real, random, position }
-    }
-}
-
-/// The real images' scores when seen at a lower resolution ([`EvalOptions::real_resolution`]).
-#[derive(Debug, Clone, Serialize)]
-pub struct LowResolutionEnd {
-    pub resolution: i64,
-    pub frechet: f64,
-    pub kernel: f64,
-    pub coverage_tv: f64,
-    pub shape_follows: f64,
-    pub appearance_follows: f64,
-    pub pose_yaw_error_deg: f64,
-    pub pose_yaw_error_in_frame_deg: f64,
-    pub pose_pitch_error_deg: f64,
-}
-
-impl LowResolutionEnd {
-    fn new(resolution: i64, s: &Scores) -> Self {
-        Self {
-            resolution,
-            frechet: s.frechet,
-            kernel: s.kernel,
-            coverage_tv: s.coverage_tv,
-            shape_follows: s.shape_follows,
-            appearance_follows: s.appearance_follows,
-            pose_yaw_error_deg: s.pose.yaw,
-            pose_yaw_error_in_frame_deg: s.pose.yaw_in_frame,
-            pose_pitch_error_deg: s.pose.pitch,
-        }
-    }
-}
-
-/// The yaw rotation found for the model, the real images and the random generator (degrees).
-#[derive(Debug, Clone, Serialize)]
-pub struct FrameOffsets {
-    pub model: f64,
-    pub real: f64,
-    pub random: f64,
-}
-
-#[derive(Debug, Serialize)]
-pub struct ClassTable {
-    pub factor: String,
-    pub classes: Vec<String>,
-    /// Held-out split, true classes.
-    pub reference: Vec<f64>,
-    pub real_predicted: Vec<f64>,
-    pub model: Vec<f64>,
-    pub random: Vec<f64>,
-}
-
-#[derive(Debug, Serialize)]
-pub struct EvalResult {
-    pub generator: String,
-    pub dataset: String,
-    pub features: String,
-    /// The evaluation seed: codes, poses, the random generator, kernel-distance subsets.
-    pub seed: u64,
-    pub images: i64,
-    pub resolution: i64,
-    pub samples_per_ray: i64,
-    /// The model's truncation ψ ([`EvalOptions::psi`]; 1 = none).
-    pub psi: f64,
-    pub frechet: Calibrated,
-    pub kernel: Calibrated,
-    /// Set when a Fréchet distance had to be regularised (few samples).
-    pub warnings: Vec<String>,
-    pub coverage_tv: Calibrated,
-    pub classes: Vec<ClassTable>,
-    pub shape_follows: Calibrated,
-    pub appearance_follows: Calibrated,
-    pub pose_yaw_error_deg: Calibrated,
-    /// After turning each distribution's yaw by one rotation (see [`PoseErrors::yaw_in_frame`]).
-    pub pose_yaw_error_in_frame_deg: Calibrated,
-    /// That rotation, per distribution.
-    pub yaw_frame_offset_deg: FrameOffsets,
-    pub pose_pitch_error_deg: Calibrated,
-    /// The real images seen at a lower resolution, when asked for.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub real_at_resolution: Option<LowResolutionEnd>,
-    pub probe_held_out_accuracy: Vec<f64>,
-    pub seconds: f64,
-    #[serde(skip)]
-    pub samples: Tensor,
-    #[serde(skip)]
-    pub swap_images: Tensor,
-    #[serde(skip)]
-    pub swap_verdicts: Vec<Verdict>,
-    #[serde(skip)]
-    pub swap_side: i64,
-}
-
 /// Renders `z` at `poses` (batches of 16, no jitter, importance samples at the midpoints:
 /// no random numbers) with `g`, its codes truncated by `trunc` when given. `codes`: shape
 /// and appearance codes `(N, latent)` each.
@@ -205,6 +95,21 @@ fn render_codes(
 enum Extractor {
     Effnet,
     Inception(Box<InceptionV3>),
+}
+
+/// The real images' scores at a lower resolution, from their [`Scores`] there.
+fn low_resolution_end(resolution: i64, s: &Scores) -> LowResolutionEnd {
+    LowResolutionEnd {
+        resolution,
+        frechet: s.frechet,
+        kernel: s.kernel,
+        coverage_tv: s.coverage_tv,
+        shape_follows: s.shape_follows,
+        appearance_follows: s.appearance_follows,
+        pose_yaw_error_deg: s.pose.yaw,
+        pose_yaw_error_in_frame_deg: s.pose.yaw_in_frame,
+        pose_pitch_error_deg: s.pose.pitch,
+    }
 }
 
 /// What one distribution of images (a generator's, or the real data's) scores.
@@ -351,7 +256,7 @@ impl Evaluator {
             let p = ev.predict(&blur(&held_x))?;
             s.coverage_tv = coverage(&p.classes, &ev.reference).0;
             s.pose = pose_errors(&p, &held_t.poses);
-            ev.real_low = Some(LowResolutionEnd::new(low, &s));
+            ev.real_low = Some(low_resolution_end(low, &s));
             ev.low_feats = Some(feats);
         }
         Ok(ev)

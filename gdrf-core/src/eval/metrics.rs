@@ -136,7 +136,7 @@ pub(crate) fn coverage(pred: &Tensor, reference: &[Vec<f64>]) -> (f64, Vec<Vec<f
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::evaluator::Calibrated;
+    use crate::eval::result::Calibrated;
 
     #[test]
     fn through_resolution_keeps_smooth_images_and_removes_what_the_low_grid_cannot_hold() {

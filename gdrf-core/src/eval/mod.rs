@@ -8,4 +8,5 @@ pub mod metrics;
 pub mod probe;
 pub mod provenance;
 pub mod report;
+pub mod result;
 pub mod seeds;

@@ -1,6 +1,6 @@
 //! The evaluation as people read it: the scores as text, the one-page `report.png`
 //! (scores, samples, class histograms, the swap matrix with its verdicts), and `eval.json`.
-use super::evaluator::{Calibrated, EvalResult};
+use super::result::{Calibrated, EvalResult};
 use crate::paths::write_atomic;
 use crate::{io, Error, Result};
 use std::path::Path;

@@ -4,8 +4,8 @@
 //! each score's per-seed values side by side, with their means, the position of the means
 //! and the worst position, so that "nearer the real end" can be judged over draws rather
 //! than on one.
-use super::evaluator::{Calibrated, EvalResult};
 use super::report::{score_rows, truncation_note, write};
+use super::result::{Calibrated, EvalResult};
 use crate::paths::write_atomic;
 use crate::{Error, Result};
 use serde::Serialize;

@@ -5,7 +5,8 @@
 //! them. The grid depends on the shape modulation only, so a
 //! grid is built once per shape and reused for every view and every appearance.
 use super::composite::composite;
-use super::renderer::{Image, Noise, RayColours, Renderer};
+use super::rays::{Image, Noise, RayColours};
+use super::renderer::Renderer;
 use crate::camera::{Poses, Rays};
 use crate::config::CameraConfig;
 use crate::field::generator::{FieldOptions, Latents};

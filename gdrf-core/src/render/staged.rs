@@ -6,7 +6,8 @@
 //! samples whose weight is at most `min_weight` are never shaded (density-first): the
 //! pixel changes by at most `min_weight · (skipped samples) · (1 + 2ε)`.
 use super::composite::composite;
-use super::renderer::{Noise, RayColours, Renderer};
+use super::rays::{Noise, RayColours};
+use super::renderer::Renderer;
 use crate::camera::Rays;
 use crate::field::RadianceField;
 use crate::nn::film::Film;

@@ -10,7 +10,7 @@
 //!                                       and the EMA generator scored (generator.safetensors)
 //! ```
 use super::run;
-use crate::eval::evaluator::EvalResult;
+use crate::eval::result::EvalResult;
 use crate::eval::seeds::SeedSummary;
 use crate::plot::{draw_panels, draw_text, Panel, Series};
 use crate::{io, Error, Result};

@@ -1,0 +1,139 @@
+//! What a render takes and gives, per ray: the noise that places its samples, the shape
+//! side's density samples, the rendered rays (pixels, depths, weights), their colours and
+//! costs, and images.
+use super::samplers::gather_samples;
+use tch::Tensor;
+
+/// Uniform noise the renderer would otherwise draw itself. Given explicitly, renders are
+/// reproducible and can be cross-checked sample for sample.
+#[derive(Debug, Default)]
+pub struct Noise {
+    /// `(B, R, N)` in [0, 1): stratified jitter (used when `RenderConfig::jitter`).
+    pub jitter: Option<Tensor>,
+    /// `(B, R, N)` in [0, 1): inverse-CDF uniforms of the importance pass.
+    pub importance: Option<Tensor>,
+}
+
+impl Noise {
+    /// No jitter and the importance uniforms (k + ½)/N of every ray `(B, R, N)`: a render that
+    /// draws no random number (the same image every time).
+    pub fn midpoints(b: i64, r: i64, n: i64, device: tch::Device) -> Noise {
+        let u = (Tensor::arange(n, (tch::Kind::Float, device)) + 0.5) / n as f64;
+        Noise { jitter: None, importance: Some(u.view([1, 1, n]).expand([b, r, n], false)) }
+    }
+
+    /// Rays `[start, start+len)` of images `[b, b+nb)`.
+    pub(crate) fn slice(&self, b: i64, nb: i64, start: i64, len: i64) -> Noise {
+        let f = |t: &Option<Tensor>| t.as_ref().map(|t| t.narrow(0, b, nb).narrow(1, start, len));
+        Noise { jitter: f(&self.jitter), importance: f(&self.importance) }
+    }
+}
+
+/// What the density pass computes for every sample.
+#[derive(Debug)]
+pub struct DensitySamples {
+    /// `(B, R, S)` sorted depths.
+    pub z: Tensor,
+    /// `(B, R, S, 1)` raw densities, sorted.
+    pub sigma: Tensor,
+    /// Template features f_t (what colour needs) per pass — `(B, R, N, F)` each, fine then
+    /// coarse — in merge order: colour is pointwise, so the training path colours each pass
+    /// and sorts 3 channels instead of F.
+    pub features: Vec<Tensor>,
+    /// `(B, R, S)`: the merged samples' sort permutation.
+    pub order: Tensor,
+    /// `(B, R, S)` sorted, true where early termination left the sample unevaluated (its
+    /// density reads [`SKIPPED_SIGMA`]); `None` when every sample was evaluated.
+    pub skipped: Option<Tensor>,
+    /// Field queries spent.
+    pub evaluated: i64,
+}
+
+impl DensitySamples {
+    /// `(B, R, S, F)` features sorted by depth.
+    pub fn sorted_features(&self) -> Tensor {
+        gather_samples(&Tensor::cat(&self.features, 2), &self.order)
+    }
+}
+
+/// Per-ray results of [`Renderer::render_rays`].
+#[derive(Debug)]
+pub struct RenderedRays {
+    /// `(B, R, 3)`, composited colour in about [0, 1] (widened by ε).
+    pub pixel: Tensor,
+    /// `(B, R, 1)` expected depth.
+    pub depth: Tensor,
+    /// `(B, R, 1)` accumulated opacity Σw.
+    pub opacity: Tensor,
+    /// `(B, R, S)` sorted sample depths (S = 2N with importance sampling).
+    pub z: Tensor,
+    /// `(B, R, S, 1)` integration weights.
+    pub weights: Tensor,
+    /// `(B, R, 3)` ray origins and unit directions.
+    pub origins: Tensor,
+    pub dirs: Tensor,
+}
+
+impl RenderedRays {
+    /// `(B, R, S, 3)` world-space sample points.
+    pub fn points(&self) -> Tensor {
+        self.origins.unsqueeze(2) + self.dirs.unsqueeze(2) * self.z.unsqueeze(-1)
+    }
+
+    /// Joins per-region results along the ray axis (the order of the image's rays).
+    pub fn concat(parts: &[RenderedRays]) -> RenderedRays {
+        let cat = |f: &dyn Fn(&RenderedRays) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
+        RenderedRays {
+            pixel: cat(&|p| &p.pixel),
+            depth: cat(&|p| &p.depth),
+            opacity: cat(&|p| &p.opacity),
+            z: cat(&|p| &p.z),
+            weights: cat(&|p| &p.weights),
+            origins: cat(&|p| &p.origins),
+            dirs: cat(&|p| &p.dirs),
+        }
+    }
+}
+
+/// A rendered image batch.
+#[derive(Debug)]
+pub struct Image {
+    /// `(B, 3, H, W)` in about [−1, 1].
+    pub rgb: Tensor,
+    /// `(B, 1, H, W)` expected depth along the ray.
+    pub depth: Tensor,
+    /// `(B, 1, H, W)` accumulated opacity.
+    pub opacity: Tensor,
+}
+
+/// Colours of a bundle of rays and what they cost.
+#[derive(Debug)]
+pub struct RayColours {
+    /// `(B, R, 3)` pixels in (0, 1), `(B, R, 1)` expected depth and opacity.
+    pub pixel: Tensor,
+    pub depth: Tensor,
+    pub opacity: Tensor,
+    /// Density (Φ + T_σ) and colour (T_c) queries spent.
+    pub density_evals: i64,
+    pub colour_evals: i64,
+}
+
+impl RayColours {
+    pub(crate) fn concat(parts: Vec<RayColours>) -> RayColours {
+        let cat = |f: &dyn Fn(&RayColours) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 1);
+        RayColours {
+            pixel: cat(&|p| &p.pixel),
+            depth: cat(&|p| &p.depth),
+            opacity: cat(&|p| &p.opacity),
+            density_evals: parts.iter().map(|p| p.density_evals).sum(),
+            colour_evals: parts.iter().map(|p| p.colour_evals).sum(),
+        }
+    }
+}
+
+/// Images `(B, 3, res, res)` in [−1, 1] from per-band results in image order.
+pub fn assemble_image(parts: &[RenderedRays], res: i64) -> Tensor {
+    let pixels: Vec<&Tensor> = parts.iter().map(|p| &p.pixel).collect();
+    let b = parts[0].pixel.size()[0];
+    Tensor::cat(&pixels, 1).permute([0, 2, 1]).reshape([b, 3, res, res]) * 2.0 - 1.0
+}

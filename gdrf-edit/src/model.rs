@@ -1,0 +1,158 @@
+//! The generator every subcommand renders: the flags that choose it (the shipped model by
+//! default), how photo sources are inverted, what it learned at, and sources resolved to
+//! features.
+use anyhow::{Context, Result};
+use clap::Args;
+use gdrf_core::checkpoint::{load_generator, Header};
+use gdrf_core::config::CameraPreset;
+use gdrf_core::edit::{Features, Source};
+use gdrf_core::field::generator::Generator;
+use gdrf_core::{device, CameraConfig, GeneratorConfig};
+use std::path::PathBuf;
+use tch::{nn, Kind};
+
+#[derive(Args)]
+pub struct ModelArgs {
+    /// Generator checkpoint (.safetensors; --generator is the same). Default: the shipped
+    /// model (models/chairs-campaign).
+    #[arg(long, visible_alias = "generator", value_name = "FILE", conflicts_with = "random_init")]
+    checkpoint: Option<PathBuf>,
+    /// A randomly initialised generator (the release's initialisation, seeded by
+    /// --init-seed) instead of a checkpoint.
+    #[arg(long)]
+    random_init: bool,
+    /// Seed of --random-init's generator.
+    #[arg(long, default_value_t = 0)]
+    init_seed: i64,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    device: String,
+    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
+    /// camera stored with the checkpoint.
+    #[arg(long, value_enum)]
+    camera: Option<CameraPreset>,
+    /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
+    /// where the generator learned; gdrf-invert writes a reusable feature file): the
+    /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, else the
+    /// camera's mean pose).
+    #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
+    photo_pose: Option<String>,
+    /// The initialiser for photo sources (gdrf-invert train-init).
+    #[arg(long, value_name = "FILE")]
+    photo_init: Option<PathBuf>,
+    /// Optimisation steps for photo sources.
+    #[arg(long, default_value_t = gdrf_core::invert::InvertConfig::default().steps)]
+    photo_steps: usize,
+}
+
+/// A loaded generator with what rendering and editing need beside it.
+pub struct Model {
+    pub _vs: nn::VarStore,
+    pub generator: Generator,
+    pub camera: CameraConfig,
+    pub device: tch::Device,
+    /// The generator's identity, which feature files carry.
+    pub id: String,
+    /// How photo sources are inverted.
+    pub photo: PhotoSettings,
+    /// Where the generator learned: the default resolution and samples per ray.
+    pub learned: Learned,
+}
+
+/// The resolution and coarse samples per ray of the generator's last training step (its
+/// checkpoint records them), else 128² and 36: what the commands render by default.
+pub struct Learned {
+    pub resolution: i64,
+    pub samples: usize,
+}
+
+impl Learned {
+    fn of(header: &Header) -> Self {
+        Self {
+            resolution: header.trained_resolution().unwrap_or(128),
+            samples: header.trained_coarse_samples().map_or(36, |n| n as usize),
+        }
+    }
+}
+
+/// The generator of `checkpoint`, or a randomly initialised one (the release's
+/// initialisation, seeded by `init_seed`) for `None` (`--random-init`).
+pub fn load_model(checkpoint: Option<&std::path::Path>, init_seed: i64, dev: tch::Device) -> Result<Model> {
+    let (vs, generator, header) = match checkpoint {
+        Some(p) => {
+            let l =
+                load_generator(p, dev, Kind::Float).with_context(|| format!("loading --checkpoint {}", p.display()))?;
+            (l.vs, l.generator, l.header)
+        }
+        None => {
+            eprintln!("--random-init: a randomly initialised generator (seed {init_seed})");
+            let vs = nn::VarStore::new(dev);
+            let cfg = GeneratorConfig::default();
+            let g = gdrf_core::rng::with_global_seed(init_seed, || Generator::new(&vs.root(), &cfg))?;
+            (vs, g, Header::generator(cfg, Some(CameraConfig::chair())))
+        }
+    };
+    let id = gdrf_core::edit::generator_id(&vs, &generator);
+    let learned = Learned::of(&header);
+    Ok(Model {
+        _vs: vs,
+        generator,
+        camera: header.camera.clone().unwrap_or_default(),
+        device: dev,
+        id,
+        photo: PhotoSettings { cfg: gdrf_core::invert::InvertConfig::where_learned(&header), ..Default::default() },
+        learned,
+    })
+}
+
+pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
+    let threads = device::init_threads();
+    let dev = device::select(&m.device)?;
+    let checkpoint = (!m.random_init).then(|| m.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator));
+    let mut model = load_model(checkpoint.as_deref(), m.init_seed, dev)?;
+    if let Some(preset) = m.camera {
+        model.camera = preset.camera();
+    }
+    model.photo = PhotoSettings {
+        pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
+        init: m.photo_init.clone(),
+        cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..model.photo.cfg.clone() },
+    };
+    model.photo.cfg.validate()?;
+    Ok((model, threads))
+}
+
+/// How photo sources are inverted (see [`ModelArgs`]).
+#[derive(Default)]
+pub struct PhotoSettings {
+    pub pose: Option<(f64, f64)>,
+    pub init: Option<PathBuf>,
+    pub cfg: gdrf_core::invert::InvertConfig,
+}
+
+pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
+    match source {
+        Source::Image(p) => {
+            let ph = &model.photo;
+            eprintln!(
+                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray)",
+                p.display(),
+                ph.cfg.steps,
+                ph.cfg.resolution,
+                ph.cfg.samples,
+                ph.cfg.samples
+            );
+            gdrf_core::invert::features_of_photo(
+                &model.generator,
+                &model.camera,
+                &model.id,
+                p,
+                ph.pose,
+                ph.init.as_deref(),
+                &ph.cfg,
+            )
+            .with_context(|| format!("{flag} {}", p.display()))
+        }
+        _ => Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string()),
+    }
+}
