@@ -86,6 +86,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
         cfg.validate()?;
         Ok(cfg)
     };
+    // The config is read first: a bad one leaves no run directory behind.
+    let config = a.config.as_deref().map(load).transpose()?;
     // One process per run directory, taken before --force clears anything.
     let run_dir = match (&a.config, &a.resume) {
         (_, Some(dir)) if !dir.is_dir() => {
@@ -96,11 +98,10 @@ pub fn train(a: TrainArgs) -> Result<()> {
         (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
     };
     let _lock = run::RunLock::acquire(&run_dir)?;
-    let mut trainer = match (&a.config, &a.resume) {
-        (Some(path), Some(dir)) => Trainer::resume_with(dir, load(path)?)
+    let mut trainer = match (config, &a.config, &a.resume) {
+        (Some(cfg), Some(path), Some(dir)) => Trainer::resume_with(dir, cfg)
             .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
-        (Some(path), None) => {
-            let cfg = load(path)?;
+        (Some(cfg), _, None) => {
             if !run::list_checkpoints(&run_dir)?.is_empty() {
                 if !a.force {
                     bail!(
@@ -118,7 +119,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
             }
             Trainer::new(cfg, &run_dir)?
         }
-        (None, Some(dir)) => {
+        (None, _, Some(dir)) => {
             let mut t =
                 Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
             if let Some(n) = a.threads {
@@ -126,7 +127,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
             }
             t
         }
-        (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
+        _ => bail!("pass --config FILE or --resume RUN_DIR"),
     };
     let threads = gdrf_core::data::thread_count(trainer.cfg.threads);
     tch::set_num_threads(threads as i32);

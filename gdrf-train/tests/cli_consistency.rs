@@ -93,4 +93,7 @@ fn usage_errors_exit_2_and_runtime_errors_exit_1() {
         assert_eq!(o.status.code(), Some(1), "{name} {args:?}: {err}");
         assert!(err.contains(missing), "{name} {args:?} does not name the file: {err}");
     }
+    // A config that cannot be read leaves no run directory behind (tests run in the
+    // package's folder, where its default run directory would be made).
+    assert!(!std::path::Path::new("runs").join(missing).exists(), "a run directory was made for a missing config");
 }
