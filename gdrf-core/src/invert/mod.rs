@@ -191,16 +191,6 @@ fn named_pose(p: &Tensor) -> Vec<(String, Tensor)> {
     vec![("pose".into(), p.shallow_clone())]
 }
 
-/// Zeroes the gradients the tensors hold.
-fn zero_grads<'t>(params: impl Iterator<Item = &'t Tensor>) {
-    for p in params {
-        let mut g = p.grad();
-        if g.defined() {
-            let _ = g.zero_();
-        }
-    }
-}
-
 /// The optimisation as explicit state, one [`Inverter::step`] at a time, so that a caller
 /// (the benchmark) can look at the features between steps without its time counting.
 pub struct Inverter<'a> {
@@ -345,7 +335,9 @@ impl<'a> Inverter<'a> {
                 "the inversion loss is not finite at step {step} (lower invert.lr or check the photo)"
             )));
         }
-        zero_grads(self.params.iter().chain(self.pose_param.as_ref().map(|(p, _)| p)));
+        for p in self.params.iter_mut().chain(self.pose_param.as_mut().map(|(p, _)| p)) {
+            p.zero_grad();
+        }
         loss.backward();
         self.adam.step_tensors(named_features(&self.params), cfg.lr);
         if let Some((p, opt)) = &mut self.pose_param {

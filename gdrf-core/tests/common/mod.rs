@@ -6,14 +6,12 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use tch::Tensor;
 
-pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-}
+pub use gdrf_core::paths::repo_root;
 
 /// The project's Python (set up by scripts/setup.sh). Panics with instructions when it is
 /// missing or lacks torch: cross-checks never skip silently.
 pub fn python() -> PathBuf {
-    let py = std::env::var_os("GDRF_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo_root().join(".venv/bin/python"));
+    let py = gdrf_core::paths::python();
     let ok = Command::new(&py)
         .args(["-c", "import torch, safetensors, numpy; assert torch.__version__.startswith('2.11.0')"])
         .status()
