@@ -252,7 +252,7 @@ impl Rays {
     pub fn from_camera(intrinsics: &Intrinsics, c2w: &Tensor) -> crate::Result<Self> {
         intrinsics.validate()?;
         if c2w.dim() != 3 || c2w.size()[1..] != [4, 4] {
-            return Err(crate::Error::Invalid(format!(
+            return Err(crate::Error::Shape(format!(
                 "cam-to-world matrices have shape {:?}, expected [B, 4, 4]",
                 c2w.size()
             )));

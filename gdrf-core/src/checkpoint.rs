@@ -93,7 +93,7 @@ pub fn is_finite(t: &Tensor) -> bool {
 /// Serialises named tensors and the header to safetensors bytes. A tensor with a NaN or
 /// an infinity is an error naming it: such a checkpoint is never written.
 pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>> {
-    let json = serde_json::to_string(header).map_err(|e| Error::Invalid(e.to_string()))?;
+    let json = serde_json::to_string(header)?;
     tensors_to_bytes(tensors, HEADER_KEY, &json)
 }
 

@@ -303,13 +303,13 @@ mod tests {
         let (_vs, g) = small();
         let f = Features::from_seed(&g, 7);
         let z = seeded_randn(&[1, 8], 7);
-        let want = tch::no_grad(|| g.latents(&z, &z, None));
+        let want = tch::no_grad(|| g.latents(&z, &z, None)).unwrap();
         let got = latents(&g, &f, &f, None);
         assert!(got.shape.gamma.allclose(&want.shape.gamma, 1e-6, 1e-6, false));
         assert!(got.appearance.beta.allclose(&want.appearance.beta, 1e-6, 1e-6, false));
         // Truncated: the same as truncating the codes' raw outputs.
         let t = g.truncation(0.5, 100, 0);
-        let want = tch::no_grad(|| g.latents(&z, &z, Some(&t)));
+        let want = tch::no_grad(|| g.latents(&z, &z, Some(&t))).unwrap();
         let got = latents(&g, &f, &f, Some(&t));
         assert!(got.shape.gamma.allclose(&want.shape.gamma, 1e-5, 1e-5, false));
         assert!(got.appearance.gamma.allclose(&want.appearance.gamma, 1e-5, 1e-5, false));

@@ -17,11 +17,24 @@ pub enum Error {
     UnexpectedTensor { path: PathBuf, name: String, found: Vec<usize> },
     #[error("{path}: tensor '{name}' has dtype {found}, expected F32 or F64")]
     DType { path: PathBuf, name: String, found: String },
-    /// A dataset file (image, pose file, metadata) that cannot be used, and why.
+    /// An input file (a dataset's image, pose file or metadata, a photo, a feature file, an
+    /// initialiser) that cannot be used, and why.
     #[error("{path}: {reason}")]
     Data { path: PathBuf, reason: String },
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// A tensor handed to the library whose shape or batch size does not fit (checked at
+    /// the API boundary, so that it is an error here and not a panic inside libtorch).
+    #[error("wrong tensor shape: {0}")]
+    Shape(String),
+    /// A helper program (the PyTorch reference, a plotting script) that could not start or
+    /// failed.
+    #[error("{program}: {reason}")]
+    Subprocess { program: String, reason: String },
+    /// A value that could not be written as JSON (a header, a metrics or curve line).
+    #[error("JSON encoding: {0}")]
+    Json(#[from] serde_json::Error),
+    /// An argument value outside what the function accepts.
     #[error("invalid argument: {0}")]
     Invalid(String),
     #[error(transparent)]

@@ -9,7 +9,7 @@ pub fn to_rgb8(img: &Tensor, unit_range: bool) -> Result<image::RgbImage> {
     let img = img.detach().to_device(tch::Device::Cpu).to_kind(Kind::Float);
     let (c, h, w) = match img.size()[..] {
         [c, h, w] if c == 1 || c == 3 => (c, h, w),
-        ref s => return Err(Error::Invalid(format!("expected a (3|1, H, W) image, got shape {s:?}"))),
+        ref s => return Err(Error::Shape(format!("expected a (3|1, H, W) image, got shape {s:?}"))),
     };
     let img = if unit_range { img } else { (img + 1.0) * 0.5 };
     let img = img.nan_to_num(0.0, 1.0, 0.0).clamp(0.0, 1.0) * 255.0;

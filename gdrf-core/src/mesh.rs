@@ -303,7 +303,7 @@ mod tests {
             let _ = g.deform.head.weight.uniform_(-0.003, 0.003);
         });
         let z = Tensor::randn([2, 8], (Kind::Float, Device::Cpu));
-        let lat = tch::no_grad(|| g.latents(&z, &z, None));
+        let lat = tch::no_grad(|| g.latents(&z, &z, None)).unwrap();
         let (a, b) = (lat.shape.narrow(0, 1), lat.shape.narrow(1, 1));
         let x_a = Tensor::rand([1, 50, 3], (Kind::Float, Device::Cpu)) - 0.5;
         let opts = FieldOptions::default();

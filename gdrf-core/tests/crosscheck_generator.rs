@@ -128,7 +128,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
             jitter: Some(case.get(&format!("render{res}_jitter")).shallow_clone()),
             importance: Some(case.get(&format!("render{res}_imp")).shallow_clone()),
         };
-        let lat = g.latents(z_s, z_a, None);
+        let lat = g.latents(z_s, z_a, None).unwrap();
         let img = renderer.render_image(&lat, &rposes, res, &noise).unwrap();
         let w = |s: &str| case.want(&format!("render{res}_{s}")).shallow_clone();
         rep.check(&format!("render {res}² rgb"), &img.rgb, &w("rgb"));
@@ -170,7 +170,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
             let cam = CameraConfig { lock_view_dependence: true, ..camera.clone() };
             let cfg = RenderConfig { force_last_white: true, ..config.clone() };
             let r = Renderer::new(g, &cam, &cfg).unwrap();
-            let lat = g.latents(z_s, z_a, Some(&trunc));
+            let lat = g.latents(z_s, z_a, Some(&trunc)).unwrap();
             let img = r.render_image(&lat, &rposes, res, &noise).unwrap();
             rep.check(&format!("render {res}² ψ, locked dirs, white last"), &img.rgb, &w("trunc_locked_rgb"));
         }

@@ -96,7 +96,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let (res, regions) = (i("resolution"), i("regions"));
 
     // Generator loss, with D frozen as in training: the G step computes no D gradient.
-    let latents = g.generator.latents(z, z, None);
+    let latents = g.generator.latents(z, z, None).unwrap();
     let noise = Noise { jitter: Some(t["g_jitter"].shallow_clone()), importance: Some(t["g_imp"].shallow_clone()) };
     let fake = FakeBatch { latents: &latents, poses: &poses, z: Some(z), resolution: res, regions, noise: &noise };
     dvs.freeze();
@@ -112,7 +112,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     zero_grads(&g.vs);
 
     // The paper's regulariser variant on the same render.
-    let latents = g.generator.latents(z, z, None);
+    let latents = g.generator.latents(z, z, None).unwrap();
     let (_, parts) = renderer.render_regions(&latents, &poses, res, regions, &noise).unwrap();
     let paper = RegConfig { variant: RegVariant::Paper, ..Default::default() };
     let samples = select_samples(&RenderedRays::concat(&parts), &paper, None);
@@ -131,7 +131,7 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     zero_grads(&g.vs);
 
     // Discriminator loss with R1.
-    let latents = g.generator.latents(z, z, None);
+    let latents = g.generator.latents(z, z, None).unwrap();
     let noise = Noise { jitter: Some(t["d_jitter"].shallow_clone()), importance: Some(t["d_imp"].shallow_clone()) };
     let fake = FakeBatch { latents: &latents, poses: &poses, z: Some(z), resolution: res, regions, noise: &noise };
     let real = t["real"].detach().set_requires_grad(true);

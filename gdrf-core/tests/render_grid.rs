@@ -153,7 +153,7 @@ fn rendering_in_the_grid_stays_close_to_a_dense_reference() {
     let g = &m.generator;
     let res = 32;
     let z = codes(2, g.cfg.latent_dim as i64, 3);
-    let lat = tch::no_grad(|| g.latents(&z, &z, None));
+    let lat = tch::no_grad(|| g.latents(&z, &z, None)).unwrap();
     let poses = Poses::from_angles(&[(cam.v_mean, 0.3), (cam.v_mean - 0.15, 2.2)], Kind::Float, Device::Cpu);
     let dense_rc = RenderConfig { num_steps: 256, jitter: false, ..Default::default() };
     let mid = |n: i64| Noise {
@@ -189,7 +189,7 @@ fn a_real_camera_renders_the_image_of_its_pose() {
     let g = &m.generator;
     let res = 16;
     let z = codes(2, g.cfg.latent_dim as i64, 9).to_kind(Kind::Double);
-    let lat = tch::no_grad(|| g.latents(&z, &z, None));
+    let lat = tch::no_grad(|| g.latents(&z, &z, None)).unwrap();
     let poses = Poses::from_angles(&[(cam.v_mean, 0.7), (cam.v_mean + 0.1, -1.9)], Kind::Double, Device::Cpu);
     let rc = RenderConfig { num_steps: 10, jitter: false, ..Default::default() };
     let r = Renderer::new(g, &cam, &rc).unwrap();
@@ -225,7 +225,7 @@ fn early_termination_stays_within_its_bound() {
     check("analytic chair", 0.01, terminated(&r, &f.latents(1), &rays(&cam, 0.6), &noise));
     let g = &m.generator;
     let z = codes(1, g.cfg.latent_dim as i64, 4);
-    let lat = tch::no_grad(|| g.latents(&z, &z, None));
+    let lat = tch::no_grad(|| g.latents(&z, &z, None)).unwrap();
     check("shipped model", 0.0, terminated(&Renderer::new(g, &mcam, &rc).unwrap(), &lat, &rays(&mcam, 1.6), &noise));
 }
 
@@ -239,7 +239,7 @@ fn terminated<F: RadianceField>(
 ) -> (Tensor, Tensor, i64, i64) {
     let side = r.shape_side(&lat.shape, rays, noise, 0.0).unwrap();
     let pixel = r.shade(&side, &lat.appearance).unwrap();
-    let d = tch::no_grad(|| r.density_pass(&lat.shape, rays, noise)).unwrap();
+    let d = tch::no_grad(|| r.sample(&lat.shape, rays, noise)).unwrap();
     let again = tch::no_grad(|| r.render_at_depths(lat, rays, &d.z)).unwrap().pixel;
     (pixel, again, side.evaluated, d.z.numel() as i64)
 }

@@ -30,7 +30,7 @@ fn case() -> Case {
 
 fn latents(c: &Case, shape: &[i64], appearance: &[i64]) -> Latents {
     let pick = |i: &[i64]| c.z.index_select(0, &Tensor::from_slice(i));
-    tch::no_grad(|| c.loaded.generator.latents(&pick(shape), &pick(appearance), None))
+    tch::no_grad(|| c.loaded.generator.latents(&pick(shape), &pick(appearance), None)).unwrap()
 }
 
 #[test]

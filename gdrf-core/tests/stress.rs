@@ -126,7 +126,7 @@ fn renderer_merges_into_sorted_samples_at_every_pose() {
     let cfg = RenderConfig { num_steps: 8, ..Default::default() };
     let r = Renderer::new(&g, &cam, &cfg).unwrap();
     let z = Tensor::randn([6, 8], (Kind::Float, CPU));
-    let lat = g.latents(&z, &z, None);
+    let lat = g.latents(&z, &z, None).unwrap();
     let poses = Poses::from_angles(
         &[(0.0, 0.0), (PI, 1.0), (1.0, PI), (1.0, -PI), (1e-9, -PI), (PI - 1e-9, 2.0)],
         Kind::Float,
@@ -308,7 +308,7 @@ fn float32_against_float64() {
     for (g, d, kind) in [(&g32, &d32, Kind::Float), (&g64, &d64, Kind::Double)] {
         let r = Renderer::new(g, &cam, &cfg).unwrap();
         let zk = z.to_kind(kind);
-        let lat: Latents = g.latents(&zk, &zk, None);
+        let lat: Latents = g.latents(&zk, &zk, None).unwrap();
         let poses = Poses::from_angles(&angles, kind, CPU);
         let noise = Noise { jitter: Some(jitter.to_kind(kind)), importance: Some(imp.to_kind(kind)) };
         let img = r.render_image(&lat, &poses, res, &noise).unwrap();

@@ -81,7 +81,7 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
     t.prepare_data(&|| {}).unwrap();
     let reports = run_steps(&mut t, 5);
     assert_eq!(reports.len(), 5);
-    assert_eq!(t.progress.step, 5);
+    assert_eq!(t.progress().step, 5);
     let run_dir = dir.path("run");
     // Checkpoints at 2 and 4 (interval 2) and the final one at 5; only the newest 2 kept.
     let ckpts: Vec<i64> = run::list_checkpoints(&run_dir).unwrap().iter().map(|c| c.0).collect();
@@ -108,9 +108,12 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
                                                          // The export and the training checkpoint both load as the EMA generator.
     let exported = load_generator(&run_dir.join(run::GENERATOR), Device::Cpu, Kind::Float).unwrap();
     let from_ckpt = load_generator(&run::latest_checkpoint(&run_dir).unwrap().1, Device::Cpu, Kind::Float).unwrap();
-    assert!(same_params(&params(&exported.vs), &params(&t.evs)));
-    assert!(same_params(&params(&from_ckpt.vs), &params(&t.evs)));
-    assert!(!same_params(&params(&t.evs), &params(&t.gvs)), "the EMA differs from the live weights");
+    assert!(same_params(&params(&exported.vs), &params(&t.ema_vars())));
+    assert!(same_params(&params(&from_ckpt.vs), &params(&t.ema_vars())));
+    assert!(
+        !same_params(&params(&t.ema_vars()), &params(&t.generator_vars())),
+        "the EMA differs from the live weights"
+    );
 }
 
 #[test]
@@ -126,7 +129,7 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
     run_steps(&mut b, 4); // stops with a checkpoint after step index 3 (inside stage 2)
     drop(b);
     let mut b = Trainer::resume(&dir.path("b"), None).unwrap();
-    assert_eq!(b.progress.step, 4);
+    assert_eq!(b.progress().step, 4);
     let rest = run_steps(&mut b, 2);
     for (x, y) in full[4..].iter().zip(&rest) {
         assert_eq!(x.step, y.step);
@@ -135,9 +138,9 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
         assert_eq!(x.g_terms, y.g_terms);
         assert_eq!(x.grad_norm_g.to_bits(), y.grad_norm_g.to_bits());
     }
-    assert!(same_params(&params(&a.gvs), &params(&b.gvs)));
-    assert!(same_params(&params(&a.evs), &params(&b.evs)));
-    assert!(same_params(&params(&a.dvs), &params(&b.dvs)));
+    assert!(same_params(&params(&a.generator_vars()), &params(&b.generator_vars())));
+    assert!(same_params(&params(&a.ema_vars()), &params(&b.ema_vars())));
+    assert!(same_params(&params(&a.disc_vars()), &params(&b.disc_vars())));
     // The resumed run's metrics hold each step once.
     let steps: Vec<i64> =
         run::read_metrics(&dir.path("b")).unwrap().iter().map(|m| m["step"].as_i64().unwrap()).collect();
@@ -189,8 +192,8 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
         assert_eq!(x.d_total.to_bits(), y.d_total.to_bits(), "step {}: D {} vs {}", x.step, x.d_total, y.d_total);
         assert_eq!(x.g_terms, y.g_terms, "step {}", x.step);
     }
-    assert!(same_params(&params(&a.dvs), &params(&b.dvs)));
-    assert!(same_params(&params(&a.gvs), &params(&b.gvs)));
+    assert!(same_params(&params(&a.disc_vars()), &params(&b.disc_vars())));
+    assert!(same_params(&params(&a.generator_vars()), &params(&b.generator_vars())));
     // The exported generator says which discriminator shaped it, and the evaluation reads it.
     let g = load_generator(&dir.path("a").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert_eq!(g.header.info.get("discriminator").map(String::as_str), Some("projected"));
@@ -209,19 +212,19 @@ fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
     run_steps(&mut t, 1);
-    let (g_before, d_before) = (params(&t.gvs), params(&t.dvs));
+    let (g_before, d_before) = (params(&t.generator_vars()), params(&t.disc_vars()));
     let r = run_steps(&mut t, 1).remove(0);
     assert!(r.g_skipped && !r.d_skipped && r.g_total.is_nan());
-    assert!(same_params(&g_before, &params(&t.gvs)), "a skipped step leaves G untouched");
-    assert!(!same_params(&d_before, &params(&t.dvs)), "D still takes its finite step");
-    assert_eq!((t.progress.skipped_steps, t.progress.consecutive_bad), (1, 1));
+    assert!(same_params(&g_before, &params(&t.generator_vars())), "a skipped step leaves G untouched");
+    assert!(!same_params(&d_before, &params(&t.disc_vars())), "D still takes its finite step");
+    assert_eq!((t.progress().skipped_steps, t.progress().consecutive_bad), (1, 1));
     // Steps 2–5 are clean (checkpoints after 2, 4 and 6 steps), then 6, 7, 8 fail.
     let reports = run_steps(&mut t, 7);
     let rolled: Vec<_> = reports.iter().filter_map(|r| r.rolled_back_to.map(|to| (r.step, to))).collect();
     assert_eq!(rolled, [(8, 8)], "the third bad step in a row (8) goes back to the newest checkpoint (after 8 steps)");
-    assert_eq!(t.progress.rollbacks, 1);
-    assert_eq!(t.progress.lr_scale, 0.5);
-    assert_eq!(t.progress.skipped_steps, 4);
+    assert_eq!(t.progress().rollbacks, 1);
+    assert_eq!(t.progress().lr_scale, 0.5);
+    assert_eq!(t.progress().skipped_steps, 4);
     let after = reports.last().unwrap();
     assert!(!after.g_skipped, "the replay runs clean");
     assert_eq!(after.lr_g, 0.5 * 3e-4);
@@ -239,19 +242,19 @@ fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
     t.prepare_data(&|| {}).unwrap();
     let mut seen = Vec::new();
     for _ in 0..6 {
-        let decay = t.ema.next_decay();
-        let shadow = params(&t.evs);
+        let decay = t.ema().next_decay();
+        let shadow = params(&t.ema_vars());
         let r = t.step().unwrap();
         // shadow ← shadow − (1 − d)(shadow − param), with the warm-up decay (1 + n)/(10 + n).
-        let live = params(&t.gvs);
-        for ((name, s0), ((_, s1), (_, p))) in shadow.iter().zip(params(&t.evs).iter().zip(&live)) {
+        let live = params(&t.generator_vars());
+        for ((name, s0), ((_, s1), (_, p))) in shadow.iter().zip(params(&t.ema_vars()).iter().zip(&live)) {
             let want = s0 - (s0 - p) * (1.0 - decay);
             assert!(s1.allclose(&want, 1e-5, 1e-7, false), "EMA of {name} at step {}", r.step);
         }
         assert_eq!(decay, (2.0 + r.step as f64) / (11.0 + r.step as f64));
         seen.push((r.step, r.stage, r.resolution, r.alpha, r.lr_g));
     }
-    assert_eq!(t.ema.updates, 6);
+    assert_eq!(t.ema().updates, 6);
     assert_eq!(
         seen,
         [
@@ -272,18 +275,18 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
     cfg.stages[0].g_lr = Some(0.0);
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
-    let (g0, e0, d0) = (params(&t.gvs), params(&t.evs), params(&t.dvs));
+    let (g0, e0, d0) = (params(&t.generator_vars()), params(&t.ema_vars()), params(&t.disc_vars()));
     let reports = run_steps(&mut t, 3);
-    assert!(same_params(&params(&t.gvs), &g0), "the generator moved in a discriminator-only stage");
-    assert!(same_params(&params(&t.evs), &e0), "the EMA moved in a discriminator-only stage");
-    assert!(!same_params(&params(&t.dvs), &d0), "the discriminator did not train");
-    assert_eq!(t.ema.updates, 0);
+    assert!(same_params(&params(&t.generator_vars()), &g0), "the generator moved in a discriminator-only stage");
+    assert!(same_params(&params(&t.ema_vars()), &e0), "the EMA moved in a discriminator-only stage");
+    assert!(!same_params(&params(&t.disc_vars()), &d0), "the discriminator did not train");
+    assert_eq!(t.ema().updates, 0);
     for r in &reports {
         assert_eq!(r.lr_g, 0.0);
         assert!(r.g_total.is_nan() && r.g_terms.is_empty() && !r.g_skipped, "step {}", r.step);
         assert!(r.d_total.is_finite() && !r.d_skipped, "step {}", r.step);
     }
-    assert_eq!(t.progress.skipped_steps, 0);
+    assert_eq!(t.progress().skipped_steps, 0);
     // The metrics carry no generator figures for those steps.
     let metrics = std::fs::read_to_string(dir.path("run").join(run::METRICS)).unwrap();
     let first: serde_json::Value = serde_json::from_str(metrics.lines().next().unwrap()).unwrap();
@@ -292,8 +295,8 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
     let r = run_steps(&mut t, 1);
     assert_eq!(r[0].lr_g, 3e-4);
     assert!(r[0].g_total.is_finite());
-    assert!(!same_params(&params(&t.gvs), &g0));
-    assert_eq!(t.ema.updates, 1);
+    assert!(!same_params(&params(&t.generator_vars()), &g0));
+    assert_eq!(t.ema().updates, 1);
 }
 
 #[test]
@@ -302,12 +305,17 @@ fn a_non_finite_state_is_never_checkpointed() {
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
     run_steps(&mut t, 2);
-    let before = run::list_checkpoints(&dir.path("run")).unwrap();
-    let _ = tch::no_grad(|| t.gvs.variables()["template.sigma_head.bias"].shallow_clone().fill_(f64::NAN));
-    t.progress.step += 1;
+    // Every checkpoint file with its bytes: a save that wrote a new file or overwrote the
+    // step's own checkpoint changes this.
+    let files = || -> Vec<(std::path::PathBuf, Vec<u8>)> {
+        let list = run::list_checkpoints(&dir.path("run")).unwrap();
+        list.into_iter().map(|(_, p)| (p.clone(), std::fs::read(&p).unwrap())).collect()
+    };
+    let before = files();
+    let _ = tch::no_grad(|| t.generator_vars().variables()["template.sigma_head.bias"].shallow_clone().fill_(f64::NAN));
     let e = t.save_checkpoint().unwrap_err().to_string();
     assert!(e.contains("generator.template.sigma_head.bias") && e.contains("NaN"), "{e}");
-    assert_eq!(run::list_checkpoints(&dir.path("run")).unwrap(), before, "nothing was written");
+    assert!(files() == before, "nothing was written");
 }
 
 /// The one-render step equals the release's two renders of the same images: its
@@ -330,15 +338,18 @@ fn the_one_render_step_equals_two_renders_of_the_same_images() {
     two.prepare_data(&|| {}).unwrap();
     cfg.step = gdrf_core::train::StepKind::OneRender;
     let mut one = Trainer::new(cfg, &dir.path("one")).unwrap();
-    let d0 = params(&one.dvs);
-    assert!(same_params(&d0, &params(&two.dvs)) && same_params(&params(&one.gvs), &params(&two.gvs)));
+    let d0 = params(&one.disc_vars());
+    assert!(
+        same_params(&d0, &params(&two.disc_vars()))
+            && same_params(&params(&one.generator_vars()), &params(&two.generator_vars()))
+    );
 
     let terms_one = one.one_render_gradients_now().unwrap();
     two.discriminator_step_on_generator_draws_now().unwrap();
     let terms_two = two.generator_gradients_now().unwrap();
 
     // The same discriminator update, and it did move.
-    let (d_one, d_two) = (params(&one.dvs), params(&two.dvs));
+    let (d_one, d_two) = (params(&one.disc_vars()), params(&two.disc_vars()));
     assert!(!same_params(&d_one, &d0));
     let mut moved = 0;
     for (((name, a), (_, b)), (_, before)) in d_one.iter().zip(&d_two).zip(&d0) {
@@ -353,7 +364,7 @@ fn the_one_render_step_equals_two_renders_of_the_same_images() {
         assert_eq!(na, nb);
         assert!((va - vb).abs() <= 1e-5 * (1.0 + vb.abs()), "{na}: {va} against {vb}");
     }
-    let (ga, gb) = (one.gvs.variables(), two.gvs.variables());
+    let (ga, gb) = (one.generator_vars().variables(), two.generator_vars().variables());
     let mut checked = 0;
     for (name, a) in &ga {
         let (a, b) = (a.grad(), gb[name].grad());
@@ -394,7 +405,7 @@ fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
         assert_eq!(na, nb);
         assert!((va - vb).abs() <= 1e-5 * (1.0 + va.abs()), "{na}: {va} vs {vb}");
     }
-    let (ga, gb) = (single.gvs.variables(), patched.gvs.variables());
+    let (ga, gb) = (single.generator_vars().variables(), patched.generator_vars().variables());
     let mut checked = 0;
     for (name, a) in &ga {
         let (a, b) = (a.grad(), gb[name].grad());
@@ -407,7 +418,7 @@ fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
     }
     assert!(checked > 20);
     assert!(
-        patched.dvs.trainable_variables().iter().all(|p| !p.grad().defined()),
+        patched.disc_vars().trainable_variables().iter().all(|p| !p.grad().defined()),
         "D gets no gradient from the G step"
     );
 }
@@ -437,7 +448,7 @@ fn bfloat16_training_steps_stay_finite() {
         let r = t.step().unwrap();
         assert!(!r.g_skipped && !r.d_skipped && r.g_total.is_finite() && r.d_total.is_finite(), "{r:?}");
     }
-    assert!(t.gvs.variables().values().all(|v| v.kind() == Kind::Float), "master weights stay float32");
+    assert!(t.generator_vars().variables().values().all(|v| v.kind() == Kind::Float), "master weights stay float32");
 }
 
 #[test]
@@ -451,9 +462,9 @@ fn a_run_continues_under_a_longer_schedule_but_not_with_other_networks() {
     let mut longer = cfg.clone();
     longer.schedule.total_steps = 5;
     let mut t = Trainer::resume_with(&dir.path("run"), longer).unwrap();
-    assert_eq!(t.progress.step, 3);
+    assert_eq!(t.progress().step, 3);
     assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
-    assert_eq!(t.progress.step, 5);
+    assert_eq!(t.progress().step, 5);
     assert_eq!(TrainConfig::load(&dir.path("run").join(run::CONFIG)).unwrap().schedule.total_steps, 5);
     let mut wider = cfg;
     wider.generator.hidden_dim = 16;
@@ -476,12 +487,12 @@ fn a_run_can_start_from_an_exported_generator() {
     warm.seed = 6;
     warm.init_generator = Some(export.clone());
     let b = Trainer::new(warm.clone(), &dir.path("b")).unwrap();
-    assert!(same_params(&params(&b.gvs), &params(&exported.vs)));
-    assert!(same_params(&params(&b.evs), &params(&exported.vs)));
+    assert!(same_params(&params(&b.generator_vars()), &params(&exported.vs)));
+    assert!(same_params(&params(&b.ema_vars()), &params(&exported.vs)));
     warm.init_generator = None;
     let cold = Trainer::new(warm.clone(), &dir.path("c")).unwrap();
-    assert!(!same_params(&params(&cold.gvs), &params(&exported.vs)));
-    assert!(same_params(&params(&b.dvs), &params(&cold.dvs)), "the discriminator starts from the seed");
+    assert!(!same_params(&params(&cold.generator_vars()), &params(&exported.vs)));
+    assert!(same_params(&params(&b.disc_vars()), &params(&cold.disc_vars())), "the discriminator starts from the seed");
 
     // Another architecture, or no such file: an error naming the key.
     let mut wide = warm.clone();

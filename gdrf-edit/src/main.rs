@@ -204,7 +204,7 @@ fn render(mut a: RenderArgs) -> Result<()> {
     };
     let z_a = Tensor::cat(&app_seeds.iter().map(|&s| code(s)).collect::<Vec<_>>(), 0);
     let trunc = generator.truncation_at(a.view.psi);
-    let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()));
+    let latents = tch::no_grad(|| generator.latents(&z_s, &z_a, trunc.as_ref()))?;
 
     let views = a.view.turntable(&camera);
     let total = a.seeds.len() * views.len();

@@ -123,13 +123,13 @@ pub fn train(a: TrainArgs) -> Result<()> {
             let mut t =
                 Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
             if let Some(n) = a.threads {
-                t.cfg.threads = n;
+                t.set_threads(n);
             }
             t
         }
         _ => bail!("pass --config FILE or --resume RUN_DIR"),
     };
-    let threads = gdrf_core::data::thread_count(trainer.cfg.threads);
+    let threads = gdrf_core::data::thread_count(trainer.cfg().threads);
     tch::set_num_threads(threads as i32);
 
     let stop = Arc::new(AtomicBool::new(false));
@@ -151,19 +151,19 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let prepared = trainer.prepare_data(&|| gen_bar.inc(1))?;
     gen_bar.finish_and_clear();
     if prepared == gdrf_core::data::Prepared::Generated {
-        println!("generated the procedural dataset in {}", trainer.cfg.data.path.display());
+        println!("generated the procedural dataset in {}", trainer.cfg().data.path.display());
     }
-    let cfg = trainer.cfg.clone();
-    let stage = cfg.stage(trainer.progress.step);
+    let cfg = trainer.cfg().clone();
+    let stage = cfg.stage(trainer.progress().step);
     let (g_params, d_all, d_used) = trainer.parameter_counts(stage.resolution);
     let n_images = trainer.dataset(stage.resolution)?.len();
-    let from = trainer.progress.step;
+    let from = trainer.progress().step;
     println!(
         "{} run {} at step {from}/{} on {:?} with {threads} threads",
         if from == 0 { "starting" } else { "resuming" },
-        trainer.run_dir.display(),
+        trainer.run_dir().display(),
         cfg.schedule.total_steps,
-        trainer.device
+        trainer.device()
     );
     println!(
         "generator {g_params} parameters, discriminator {d_all} ({d_used} used at {r}²); {n_images} training images from {}",
@@ -219,9 +219,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
         bar.set_message(msg);
     })?;
     bar.finish_and_clear();
-    let p = &trainer.progress;
-    let (latest, _) = run::latest_checkpoint(&trainer.run_dir)?;
-    let dir = trainer.run_dir.display();
+    let p = trainer.progress();
+    let (latest, _) = run::latest_checkpoint(trainer.run_dir())?;
+    let dir = trainer.run_dir().display();
     match stopped {
         Stopped::Finished => println!("finished: {} steps", p.step),
         Stopped::Limit => {
@@ -242,7 +242,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
     );
     if cfg.schedule.sample_interval > 0 {
         let shown: Vec<String> =
-            samples::latest_previews(&trainer.run_dir).iter().map(|p| p.display().to_string()).collect();
+            samples::latest_previews(trainer.run_dir()).iter().map(|p| p.display().to_string()).collect();
         println!("previews: {}", shown.join(", "));
     }
     if stopped == Stopped::Interrupted {

@@ -172,7 +172,7 @@ impl Dataset {
             return Err(Error::Invalid(format!("batch index {bad} out of range for a dataset of {n} images")));
         }
         if flips.is_some_and(|f| f.len() != indices.len()) {
-            return Err(Error::Invalid("batch: one flip flag per index expected".into()));
+            return Err(Error::Shape("batch: one flip flag per index expected".into()));
         }
         let idx = Tensor::from_slice(indices);
         let mut images = to_unit_range(&self.pixels.index_select(0, &idx));
@@ -410,7 +410,7 @@ fn write_cache(
         names: names.to_vec(),
         skipped: skipped.to_vec(),
     };
-    let json = serde_json::to_string(&header).map_err(|e| Error::Invalid(e.to_string()))?;
+    let json = serde_json::to_string(&header)?;
     let view = TensorView::new(Dtype::U8, vec![names.len(), 3, res, res], pixels)
         .map_err(|e| Error::Invalid(format!("cache tensor: {e}")))?;
     let meta: HashMap<String, String> = [(CACHE_KEY.to_string(), json)].into();

@@ -49,7 +49,7 @@ pub fn colour(img: &Tensor, brightness: &Tensor, saturation: &Tensor, contrast: 
 pub fn translate(img: &Tensor, shifts: &[(i64, i64)], fill: f64) -> Result<Tensor> {
     let (b, h, w) = dims(img)?;
     if shifts.len() as i64 != b {
-        return Err(Error::Invalid(format!("{} translations for a batch of {b} images", shifts.len())));
+        return Err(Error::Shape(format!("{} translations for a batch of {b} images", shifts.len())));
     }
     let rows: Vec<Tensor> = shifts
         .iter()
@@ -71,7 +71,7 @@ pub fn translate(img: &Tensor, shifts: &[(i64, i64)], fill: f64) -> Result<Tenso
 pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64, fill: f64) -> Result<Tensor> {
     let (b, h, w) = dims(img)?;
     if centres.len() as i64 != b {
-        return Err(Error::Invalid(format!("{} cutouts for a batch of {b} images", centres.len())));
+        return Err(Error::Shape(format!("{} cutouts for a batch of {b} images", centres.len())));
     }
     let band = |starts: Vec<i64>, n: i64| {
         let lo = Tensor::from_slice(&starts).to_device(img.device()).view([-1, 1]);
@@ -87,7 +87,7 @@ pub fn cutout(img: &Tensor, centres: &[(i64, i64)], size: i64, fill: f64) -> Res
 fn dims(img: &Tensor) -> Result<(i64, i64, i64)> {
     match img.size()[..] {
         [b, 3, h, w] => Ok((b, h, w)),
-        ref s => Err(Error::Invalid(format!("images have shape {s:?}, expected [B, 3, H, W]"))),
+        ref s => Err(Error::Shape(format!("images have shape {s:?}, expected [B, 3, H, W]"))),
     }
 }
 

@@ -271,7 +271,7 @@ impl Discriminator {
     pub fn forward(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
         let size = img.size()[3];
         if img.size()[2] != size || img.size()[1] != 3 {
-            return Err(Error::Invalid(format!("discriminator expects (B, 3, S, S) images, got {:?}", img.size())));
+            return Err(Error::Shape(format!("discriminator expects (B, 3, S, S) images, got {:?}", img.size())));
         }
         let start = Self::start_index(size)?;
         let mut x = leaky_relu(&self.from_rgb[start].forward(img));

@@ -220,7 +220,7 @@ impl ProjectedDiscriminator {
     fn check(img: &Tensor) -> Result<()> {
         let s = img.size();
         if s.len() != 4 || s[1] != 3 || s[2] != s[3] || s[2] < 2 {
-            return Err(Error::Invalid(format!("discriminator expects (B, 3, S, S) images, got {s:?}")));
+            return Err(Error::Shape(format!("discriminator expects (B, 3, S, S) images, got {s:?}")));
         }
         Ok(())
     }

@@ -44,10 +44,7 @@ pub fn frechet_from_stats(mu1: &Tensor, cov1: &Tensor, mu2: &Tensor, cov2: &Tens
     let d = mu1.size()[0];
     for (name, t, want) in [("mu2", mu2, vec![d]), ("cov1", cov1, vec![d, d]), ("cov2", cov2, vec![d, d])] {
         if t.size() != want {
-            return Err(Error::Invalid(format!(
-                "Fréchet distance: {name} has shape {:?}, expected {want:?}",
-                t.size()
-            )));
+            return Err(Error::Shape(format!("Fréchet distance: {name} has shape {:?}, expected {want:?}", t.size())));
         }
     }
     let [mu1, mu2, cov1, cov2] = [mu1, mu2, cov1, cov2].map(|t| t.to_kind(Kind::Double));
@@ -68,7 +65,7 @@ pub fn frechet_from_stats(mu1: &Tensor, cov1: &Tensor, mu2: &Tensor, cov2: &Tens
 fn check_features(name: &str, x: &Tensor) -> Result<()> {
     let s = x.size();
     if s.len() != 2 || s[0] < 2 {
-        return Err(Error::Invalid(format!("{name}: expected (N ≥ 2, D) features, got shape {s:?}")));
+        return Err(Error::Shape(format!("{name}: expected (N ≥ 2, D) features, got shape {s:?}")));
     }
     if !bool::try_from(x.isfinite().all())? {
         return Err(Error::Invalid(format!("{name}: features contain NaN or infinity")));
@@ -84,7 +81,7 @@ pub fn frechet(a: &Tensor, b: &Tensor) -> Result<Frechet> {
     check_features("second feature set", b)?;
     let (n, m, d) = (a.size()[0], b.size()[0], a.size()[1]);
     if b.size()[1] != d {
-        return Err(Error::Invalid(format!("feature sets have different widths: {d} and {}", b.size()[1])));
+        return Err(Error::Shape(format!("feature sets have different widths: {d} and {}", b.size()[1])));
     }
     let (mu1, mut c1) = mean_cov(a);
     let (mu2, mut c2) = mean_cov(b);
@@ -126,7 +123,7 @@ pub fn kernel_on_subsets(a: &Tensor, b: &Tensor, subsets: &[(Vec<i64>, Vec<i64>)
     check_features("first feature set", a)?;
     check_features("second feature set", b)?;
     if a.size()[1] != b.size()[1] {
-        return Err(Error::Invalid(format!("feature sets have different widths: {} and {}", a.size()[1], b.size()[1])));
+        return Err(Error::Shape(format!("feature sets have different widths: {} and {}", a.size()[1], b.size()[1])));
     }
     let (a, b) = (a.to_kind(Kind::Double), b.to_kind(Kind::Double));
     let mut vals = Vec::with_capacity(subsets.len());

@@ -82,7 +82,7 @@ fn render_codes(
     let mut i = 0;
     while i < n {
         let b = 16.min(n - i);
-        let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), trunc));
+        let lat = tch::no_grad(|| g.latents(&zs.narrow(0, i, b), &za.narrow(0, i, b), trunc))?;
         let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
         let nz = Noise::midpoints(b, res * res, rc.num_steps as i64, zs.device());
         out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &nz))?.rgb.to_device(Device::Cpu));

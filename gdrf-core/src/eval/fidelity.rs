@@ -13,7 +13,7 @@ const SSIM_SIGMA: f64 = 1.5;
 fn check(a: &Tensor, b: &Tensor, what: &str) -> Result<()> {
     let s = a.size();
     if s.len() != 4 || s != b.size() {
-        return Err(Error::Invalid(format!(
+        return Err(Error::Shape(format!(
             "{what}: expected two (B, C, H, W) images of one shape, got {:?} and {:?}",
             s,
             b.size()
@@ -40,7 +40,7 @@ pub fn psnr_of_mse(mse: f64) -> f64 {
 /// One PSNR over every pixel of `a` against `b` (same shape, in [−1, 1], compared on [0, 1]).
 pub fn psnr_all(a: &Tensor, b: &Tensor) -> Result<f64> {
     if a.size() != b.size() {
-        return Err(Error::Invalid(format!("PSNR of images of shapes {:?} and {:?}", a.size(), b.size())));
+        return Err(Error::Shape(format!("PSNR of images of shapes {:?} and {:?}", a.size(), b.size())));
     }
     Ok(psnr_of_mse(f64::try_from(((a - b) * 0.5).square().mean(Kind::Double))?))
 }

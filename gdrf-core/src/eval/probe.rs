@@ -435,7 +435,7 @@ impl Probe {
     pub fn save(&self, path: &Path) -> Result<()> {
         let mut tensors: Vec<(String, Tensor)> = self.vs.variables().into_iter().collect();
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
-        let json = serde_json::to_string(&self.header).map_err(|e| Error::Invalid(e.to_string()))?;
+        let json = serde_json::to_string(&self.header)?;
         write_atomic(path, &tensors_to_bytes(&tensors, PROBE_KEY, &json)?)
     }
 

@@ -197,7 +197,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
 /// Writes `eval.json` and `report.png` into `dir` (created; files written atomically).
 pub fn write(dir: &Path, r: &EvalResult) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), err: source })?;
-    let json = serde_json::to_string_pretty(r).map_err(|e| Error::Invalid(e.to_string()))?;
+    let json = serde_json::to_string_pretty(r)?;
     write_atomic(&dir.join("eval.json"), json.as_bytes())?;
     io::save_png(&dir.join("report.png"), &report_image(r)?)
 }

@@ -150,7 +150,7 @@ pub fn write_all(dir: &Path, results: &[EvalResult], s: &SeedSummary) -> Result<
     for r in results {
         write(&dir.join(format!("seed-{}", r.seed)), r)?;
     }
-    let json = serde_json::to_string_pretty(s).map_err(|e| Error::Invalid(e.to_string()))?;
+    let json = serde_json::to_string_pretty(s)?;
     write_atomic(&dir.join("seeds.json"), json.as_bytes())
 }
 

@@ -4,7 +4,7 @@ use super::template::TemplateField;
 use crate::config::GeneratorConfig;
 use crate::nn::film::Film;
 use crate::nn::mapping::MappingNetwork;
-use crate::Result;
+use crate::{Error, Result};
 use tch::{nn, Device, Kind, Tensor};
 
 /// The modulations that drive one batch: shape (Φ) and appearance (T_c).
@@ -139,9 +139,17 @@ impl Generator {
         Film::from_raw(&truncate(raw, trunc.map(|t| (t.psi, &t.appearance_mean))))
     }
 
-    /// Both modulations from codes. The release feeds one code to both (z_s = z_a).
-    pub fn latents(&self, z_s: &Tensor, z_a: &Tensor, trunc: Option<&Truncation>) -> Latents {
-        Latents { shape: self.shape_from_z(z_s, trunc), appearance: self.appearance_from_z(z_a, trunc) }
+    /// Both modulations from codes `z_s, z_a: (B, latent)`. The release feeds one code to
+    /// both (z_s = z_a). Codes of another shape are an error, not a panic in libtorch.
+    pub fn latents(&self, z_s: &Tensor, z_a: &Tensor, trunc: Option<&Truncation>) -> Result<Latents> {
+        let want = self.cfg.latent_dim as i64;
+        let (s, a) = (z_s.size(), z_a.size());
+        if s.len() != 2 || s[1] != want || a.len() != 2 || a[1] != want || s[0] != a[0] {
+            return Err(Error::Shape(format!(
+                "codes z_s {s:?} and z_a {a:?}: expected two (B, {want}) batches of the same size"
+            )));
+        }
+        Ok(Latents { shape: self.shape_from_z(z_s, trunc), appearance: self.appearance_from_z(z_a, trunc) })
     }
 
     /// Density-only query (the shape side): `x: (B, P, 3)`.
@@ -249,6 +257,21 @@ mod tests {
         assert!(diff > 1e-3 && diff < 0.1, "mean |Δx(z₀) − Δx(z₁)| = {diff}");
         let bad = GeneratorConfig { deform_head_frequency: -1.0, ..Default::default() }.validate();
         assert!(bad.unwrap_err().to_string().contains("deform_head_frequency"));
+    }
+
+    /// Codes of the wrong width, rank or batch are a shape error naming both shapes.
+    #[test]
+    fn codes_of_the_wrong_shape_are_an_error() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = Generator::new(&vs.root(), &GeneratorConfig::tiny()).unwrap();
+        let l = g.cfg.latent_dim as i64;
+        let z = |s: &[i64]| Tensor::zeros(s, (Kind::Float, Device::Cpu));
+        assert_eq!(g.latents(&z(&[3, l]), &z(&[3, l]), None).unwrap().batch_size(), 3);
+        for (s, a) in [(vec![3, l + 1], vec![3, l]), (vec![3, l], vec![l]), (vec![3, l], vec![2, l])] {
+            let e = g.latents(&z(&s), &z(&a), None).unwrap_err();
+            assert!(matches!(e, crate::Error::Shape(_)), "{e}");
+            assert!(e.to_string().contains(&format!("{s:?}")) && e.to_string().contains(&format!("{a:?}")), "{e}");
+        }
     }
 
     /// The release's head bias is U(±1/√H), so its Δσ offset (×100) depends on the width;

@@ -138,7 +138,7 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
         let b = 16.min(n - i);
         let zb = z.narrow(0, i, b);
         let (img, w, a) = tch::no_grad(|| -> Result<_> {
-            let lat = g.latents(&zb, &zb, None);
+            let lat = g.latents(&zb, &zb, None)?;
             let res = cfg.resolution;
             let noise = Noise::midpoints(b, res * res, cfg.samples as i64, device);
             let img = r.render_image(&lat, &poses.narrow(i, b), res, &noise)?.rgb;
@@ -223,7 +223,7 @@ impl Initialiser {
     pub fn predict(&self, photo: &Tensor) -> Result<(Tensor, (f64, f64))> {
         let s = photo.size();
         if s.len() != 4 || s[0] != 1 || s[1] != 3 {
-            return Err(Error::Invalid(format!("the initialiser takes a (1, 3, S, S) photo, got {s:?}")));
+            return Err(Error::Shape(format!("the initialiser takes a (1, 3, S, S) photo, got {s:?}")));
         }
         let x = resize(&photo.to_kind(Kind::Float).to_device(self.vs.device()), self.resolution);
         let (w, p) = tch::no_grad(|| self.forward_t(&x, false));
@@ -237,7 +237,7 @@ impl Initialiser {
             tensors.extend(a.named_tensors("adam."));
         }
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
-        let json = serde_json::to_string(header).map_err(|e| Error::Invalid(e.to_string()))?;
+        let json = serde_json::to_string(header)?;
         write_atomic(path, &tensors_to_bytes(&tensors, INIT_KEY, &json)?)
     }
 
@@ -252,7 +252,7 @@ impl Initialiser {
         device: Device,
     ) -> Result<(Self, InitHeader, std::collections::BTreeMap<String, Tensor>)> {
         let (json, mut t) = load_tensors_with(path, INIT_KEY)?;
-        let bad = |why: String| Error::Invalid(format!("initialiser {}: {why}", path.display()));
+        let bad = |why: String| Error::Data { path: path.to_path_buf(), reason: format!("initialiser: {why}") };
         let h: InitHeader = serde_json::from_str(&json).map_err(|e| bad(format!("bad header ({e})")))?;
         if let Some(id) = generator_id {
             if h.generator != id {

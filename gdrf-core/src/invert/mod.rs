@@ -233,13 +233,13 @@ impl<'a> Inverter<'a> {
         cfg.validate()?;
         let s = photo.size();
         if s.len() != 4 || s[0] != 1 || s[1] != 3 || s[2] != s[3] {
-            return Err(Error::Invalid(format!("the photo must be (1, 3, R, R), got {s:?}")));
+            return Err(Error::Shape(format!("the photo must be (1, 3, R, R), got {s:?}")));
         }
         let (kind, device) = g.kind_device();
         let hidden = g.cfg.mapping_hidden_dim as i64;
         let colour = 2 * (g.cfg.colour_layers * g.cfg.hidden_dim) as i64;
         if start.w_s.size() != [1, hidden] || start.appearance_raw.size() != [1, colour] {
-            return Err(Error::Invalid(format!(
+            return Err(Error::Shape(format!(
                 "start features have shapes {:?} and {:?}, expected [1, {hidden}] and [1, {colour}]",
                 start.w_s.size(),
                 start.appearance_raw.size()

@@ -40,10 +40,14 @@ impl std::str::FromStr for Fit {
 
 /// [`folder::decode_rgba`], with a plain message for a missing file; `what` names the input.
 fn open(path: &Path, what: &str) -> Result<Rgba32FImage> {
+    let input = |reason: String| Error::Data { path: path.to_path_buf(), reason: format!("{reason} (the {what})") };
     if !path.is_file() {
-        return Err(Error::Invalid(format!("{what} {}: no such file", path.display())));
+        return Err(input("no such file".into()));
     }
-    folder::decode_rgba(path).map_err(|e| Error::Invalid(format!("{what} {e}")))
+    folder::decode_rgba(path).map_err(|e| match e {
+        Error::Data { reason, .. } => input(reason),
+        e => e,
+    })
 }
 
 /// Loads `path` as a `(1, 3, res, res)` float32 image in [−1, 1] on `device` (see the

@@ -35,7 +35,7 @@ pub fn coverage_gradients(
     let gen = live.generator;
     let poses = Poses::from_stacked(&real_poses.repeat_interleave_self_int(k, 0, None));
     let rendered = tch::no_grad(|| {
-        let lat = gen.latents(z, z, None);
+        let lat = gen.latents(z, z, None)?;
         let noise = Noise::midpoints(b * k, small * small, samples, z.device());
         candidates.render_image(&lat, &poses, small, &noise)
     })?
@@ -51,7 +51,7 @@ pub fn coverage_gradients(
         let sl = |t: &Tensor| t.narrow(0, c * chunk, chunk);
         let noise = Noise { jitter: Some(sl(&draws.jitter)), importance: Some(sl(&draws.importance)) };
         let zc = sl(&z_best);
-        let lat = gen.latents(&zc, &zc, None);
+        let lat = gen.latents(&zc, &zc, None)?;
         let (img, _) = live.render_regions(&lat, &poses.narrow(c * chunk, chunk), res, 1, &noise)?;
         let m = (img - sl(real)).square().mean(Kind::Float);
         (&m * (cfg.coverage_weight / split as f64)).backward();

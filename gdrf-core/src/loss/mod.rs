@@ -228,7 +228,7 @@ pub fn generator_adversarial(
     cfg.validate()?;
     let b = fake.logit.size()[0];
     if poses.size() != [b, 2] {
-        return Err(Error::Invalid(format!("fake poses have shape {:?}, expected [{b}, 2]", poses.size())));
+        return Err(Error::Shape(format!("fake poses have shape {:?}, expected [{b}, 2]", poses.size())));
     }
     let k = gan::topk_count(at.step, b, cfg.topk_interval, cfg.topk_floor);
     let adv = gan::g_adversarial(cfg.adversarial, &fake.logit, k);
@@ -260,7 +260,7 @@ pub fn generator_image_terms(
     if let (true, Some(z)) = (weight != 0.0, z) {
         let b = img.size()[0];
         if b % 2 != 0 || z.size()[0] != b {
-            return Err(Error::Invalid(format!(
+            return Err(Error::Shape(format!(
                 "the mode-seeking term needs an even batch of images with one code each, got {b} images and codes {:?}",
                 z.size()
             )));

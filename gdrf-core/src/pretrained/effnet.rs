@@ -212,7 +212,7 @@ impl EfficientNetLite0 {
     pub fn prepare(&self, img: &Tensor, size: i64) -> Result<Tensor> {
         let s = img.size();
         if s.len() != 4 || s[1] != 3 || s[2] < 1 || s[3] < 1 {
-            return Err(Error::Invalid(format!(
+            return Err(Error::Shape(format!(
                 "EfficientNet-Lite0 expects (B, 3, H, W) images in [-1, 1], got shape {s:?}"
             )));
         }

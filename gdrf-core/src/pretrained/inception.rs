@@ -401,7 +401,7 @@ impl InceptionV3 {
 fn check_images(x: &Tensor) -> Result<()> {
     let s = x.size();
     if s.len() != 4 || s[1] != 3 || s.iter().any(|&d| d < 1) {
-        return Err(Error::Invalid(format!("Inception-v3 takes a (B, 3, H, W) batch of RGB images, got shape {s:?}")));
+        return Err(Error::Shape(format!("Inception-v3 takes a (B, 3, H, W) batch of RGB images, got shape {s:?}")));
     }
     if !x.is_floating_point() {
         return Err(Error::Invalid(format!("Inception-v3 takes float images, got {:?}", x.kind())));
@@ -417,7 +417,7 @@ mod tests {
     fn rejects_wrong_shapes_and_kinds() {
         for shape in [vec![3, 8, 8], vec![2, 1, 8, 8], vec![2, 4, 8, 8], vec![0, 3, 8, 8], vec![1, 3, 0, 8]] {
             let e = check_images(&Tensor::zeros(shape.as_slice(), (Kind::Float, Device::Cpu))).unwrap_err();
-            assert!(matches!(e, Error::Invalid(_)) && e.to_string().contains(&format!("{shape:?}")), "{e}");
+            assert!(matches!(e, Error::Shape(_)) && e.to_string().contains(&format!("{shape:?}")), "{e}");
         }
         let e = check_images(&Tensor::zeros([1, 3, 8, 8], (Kind::Uint8, Device::Cpu))).unwrap_err();
         assert!(matches!(e, Error::Invalid(_)), "{e}");

@@ -29,11 +29,7 @@ impl EffnetPerceptual<'_> {
     /// with respect to both (the weights take no gradient).
     pub fn distance(&self, x: &Tensor, y: &Tensor) -> Result<Tensor> {
         if x.size() != y.size() {
-            return Err(Error::Invalid(format!(
-                "perceptual distance: shapes differ, {:?} and {:?}",
-                x.size(),
-                y.size()
-            )));
+            return Err(Error::Shape(format!("perceptual distance: shapes differ, {:?} and {:?}", x.size(), y.size())));
         }
         let b = x.size()[0];
         let both = Tensor::cat(&[x, y], 0);

@@ -92,10 +92,7 @@ impl OccupancyGrid {
     ) -> Result<Self> {
         cfg.validate()?;
         if shape.batch_size() != 1 {
-            return Err(Error::Invalid(format!(
-                "an occupancy grid is built for one shape, got {}",
-                shape.batch_size()
-            )));
+            return Err(Error::Shape(format!("an occupancy grid is built for one shape, got {}", shape.batch_size())));
         }
         let g = cfg.resolution;
         let half = camera_half_extent(camera);
@@ -205,7 +202,7 @@ impl<F: RadianceField> Renderer<'_, F> {
         grids: &[&OccupancyGrid],
     ) -> Result<(Image, (i64, i64))> {
         if !grids.is_empty() && grids.len() as i64 != poses.len() {
-            return Err(Error::Invalid(format!("{} occupancy grids for {} images", grids.len(), poses.len())));
+            return Err(Error::Shape(format!("{} occupancy grids for {} images", grids.len(), poses.len())));
         }
         self.render_image_with(latents, poses, res, noise, |i, lat, rays, noise| match grids.get(i) {
             Some(grid) => self.render_in_grid(lat, rays, grid, noise),
@@ -230,7 +227,7 @@ impl<F: RadianceField> Renderer<'_, F> {
     /// reference's last interval is infinite, so that sample decides an empty ray's
     /// colour), the others are sampled within their occupied interval
     /// ([`Rays::bounds`]) by the density-first or the full path.
-    pub fn render_in_grid(
+    fn render_in_grid(
         &self,
         latents: &Latents,
         rays: &Rays,
@@ -238,7 +235,7 @@ impl<F: RadianceField> Renderer<'_, F> {
         noise: &Noise,
     ) -> Result<RayColours> {
         if latents.batch_size() != 1 || rays.dirs.size()[0] != 1 {
-            return Err(Error::Invalid("render_in_grid renders one image at a time".into()));
+            return Err(Error::Shape("render_in_grid renders one image at a time".into()));
         }
         tch::no_grad(|| {
             let r = rays.num_rays();

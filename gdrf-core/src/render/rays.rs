@@ -29,9 +29,10 @@ impl Noise {
     }
 }
 
-/// What the density pass computes for every sample.
+/// What the sampler gives: every sample of a bundle with its density and template
+/// features (density first, colour not yet known), sorted by depth.
 #[derive(Debug)]
-pub struct DensitySamples {
+pub struct RaySamples {
     /// `(B, R, S)` sorted depths.
     pub z: Tensor,
     /// `(B, R, S, 1)` raw densities, sorted.
@@ -43,13 +44,13 @@ pub struct DensitySamples {
     /// `(B, R, S)`: the merged samples' sort permutation.
     pub order: Tensor,
     /// `(B, R, S)` sorted, true where early termination left the sample unevaluated (its
-    /// density reads [`SKIPPED_SIGMA`]); `None` when every sample was evaluated.
+    /// density reads [`super::sampler::SKIPPED_SIGMA`]); `None` when every sample was evaluated.
     pub skipped: Option<Tensor>,
     /// Field queries spent.
     pub evaluated: i64,
 }
 
-impl DensitySamples {
+impl RaySamples {
     /// `(B, R, S, F)` features sorted by depth.
     pub fn sorted_features(&self) -> Tensor {
         gather_samples(&Tensor::cat(&self.features, 2), &self.order)
@@ -78,6 +79,15 @@ impl RenderedRays {
     /// `(B, R, S, 3)` world-space sample points.
     pub fn points(&self) -> Tensor {
         self.origins.unsqueeze(2) + self.dirs.unsqueeze(2) * self.z.unsqueeze(-1)
+    }
+
+    /// Joins consecutive chunks of one bundle; a single chunk is passed through as it is
+    /// (no copy, no extra node in the graph).
+    pub(crate) fn join(mut parts: Vec<RenderedRays>) -> RenderedRays {
+        if parts.len() == 1 {
+            return parts.remove(0);
+        }
+        RenderedRays::concat(&parts)
     }
 
     /// Joins per-region results along the ray axis (the order of the image's rays).

@@ -1,10 +1,13 @@
-//! The GDRF renderer: coarse pass, importance pass, merge, integrate — for training
-//! batches (with gradients), patches, and chunked inference in bounded memory.
-use super::composite::{composite, transmittance, weights_from_density, CompositeOptions};
-use super::rays::{assemble_image, DensitySamples, Image, Noise, RayColours, RenderedRays};
-use super::samplers::{
-    gather_samples, importance_depths, sort_depths, stratified_depths, stratified_in, OccupiedLength,
-};
+//! The GDRF renderer, a composition of three parts as in nerfstudio: the sampler places a
+//! bundle's samples and answers their density from the shape alone ([`Renderer::sample`],
+//! `sampler.rs`, giving one [`RaySamples`]); the field colours them from the appearance
+//! ([`Renderer::colour`]); the compositor integrates along each ray (`composite.rs`). Around
+//! it: training batches and patches with gradients, chunked inference in bounded memory,
+//! the staged shape-side / re-shade path (`staged.rs`) and occupancy grids
+//! (`occupancy.rs`).
+use super::composite::{composite, CompositeOptions};
+use super::rays::{assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
+use super::samplers::gather_samples;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::{FieldOptions, Generator, Latents};
@@ -12,22 +15,6 @@ use crate::field::RadianceField;
 use crate::nn::film::Film;
 use crate::{Error, Result};
 use tch::{Kind, Tensor};
-
-/// The coarse samples of a bundle: depths `(B, R, Nc)`, integration weights, raw
-/// densities `(B, R, Nc, 1)` and features `(B, R, Nc, F)`.
-struct Coarse<'a> {
-    z: &'a Tensor,
-    weights: &'a Tensor,
-    sigma: &'a Tensor,
-    feature: &'a Tensor,
-}
-
-/// The raw density of a sample that early termination did not evaluate: softplus gives
-/// about 1e-35, no light.
-pub const SKIPPED_SIGMA: f64 = -80.0;
-
-/// Segments of the coarse samples evaluated one after the other under early termination.
-const TERMINATION_SEGMENTS: i64 = 4;
 
 /// Renders a radiance field (the generator by default) with a camera and sampling
 /// configuration.
@@ -62,334 +49,51 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         d.unsqueeze(2).expand([b, r, s, 3], false).reshape([b, r * s, 3])
     }
 
-    /// The density pass (the shape side): coarse stratified depths, importance depths drawn
-    /// from the coarse weights, Φ and T_σ at both — no colour — merged and sorted.
-    /// Missing noise is drawn from libtorch's generator.
-    pub fn density_pass(&self, shape: &Film, rays: &Rays, noise: &Noise) -> Result<DensitySamples> {
-        let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        if shape.batch_size() != b {
-            return Err(Error::Invalid(format!("{} latents for a batch of {b} ray sets", shape.batch_size())));
-        }
-        let cfg = self.config;
-        let n = cfg.num_steps as i64;
-        let opts = (rays.dirs.kind(), rays.dirs.device());
-        let gen = self.generator;
-        let at = |z: &Tensor| {
-            let s = z.size()[2];
-            (rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * z.unsqueeze(-1)).reshape([b, r * s, 3])
-        };
-
-        let drawn;
-        let jitter = match (&noise.jitter, cfg.jitter) {
-            (_, false) => None,
-            (Some(u), true) => Some(u),
-            (None, true) => {
-                drawn = Tensor::rand([b, r, n], opts);
-                Some(&drawn)
-            }
-        };
-        let occupied =
-            rays.occupied.as_ref().map(|o| OccupiedLength::new(o, (self.camera.ray_start, self.camera.ray_end)));
-        let z_c = match (&occupied, &rays.bounds) {
-            (Some(o), _) => {
-                if cfg.termination > 0.0 {
-                    return Err(Error::Invalid(
-                        "early termination does not combine with sampling only in occupied cells".into(),
-                    ));
-                }
-                // As with bounds: the far-end sample ends every ray as the reference's do.
-                let end = Tensor::full([b, r, 1], self.camera.ray_end, opts);
-                Tensor::cat(&[o.stratified(n, jitter).to_kind(opts.0), end], 2)
-            }
-            (None, None) => stratified_depths((b, r), n, (self.camera.ray_start, self.camera.ray_end), jitter, opts),
-            (None, Some(nf)) => {
-                // The release's last interval is infinite (delta_final): whatever density a
-                // ray meets at the camera's far end absorbs its remaining light. Rays with
-                // their own bounds keep that sample, so that they end as the reference's do.
-                let end = nf.narrow(2, 1, 1).clamp_min(self.camera.ray_end);
-                Tensor::cat(&[stratified_in(nf, n, jitter), end], 2)
-            }
-        };
-        let nc = z_c.size()[2];
-        if cfg.termination > 0.0 {
-            return tch::no_grad(|| self.density_pass_terminating(shape, rays, noise, &z_c));
-        }
-        let (sigma_c, feature_c) = gen.sigma_feature(&at(&z_c), shape, self.field);
-        let sigma_c = sigma_c.view([b, r, nc, 1]);
-        let feature_c = feature_c.view([b, r, nc, -1]);
-        let mut evaluated = b * r * nc;
-        let (z, sigma, features) = if cfg.hierarchical {
-            // The coarse weights that place the importance samples (in occupied length
-            // when the rays carry occupied bins).
-            let w_c = tch::no_grad(|| {
-                let sigma = match &occupied {
-                    Some(o) => o.absorb_only_where_occupied(&sigma_c, &z_c),
-                    None => sigma_c.shallow_clone(),
-                };
-                weights_from_density(&sigma, &z_c.unsqueeze(-1), cfg.delta_final)
-            });
-            let z_f = tch::no_grad(|| self.importance(&w_c, &z_c, noise, occupied.as_ref()));
-            let (z_f, sigma_f, feature_f) = if cfg.importance_skip > 0.0 || cfg.importance_concentration > 0.0 {
-                let (z_f, sigma_f, feature_f, k) = tch::no_grad(|| {
-                    let coarse = Coarse { z: &z_c, weights: &w_c, sigma: &sigma_c, feature: &feature_c };
-                    self.importance_where_needed(shape, rays, coarse, &z_f)
-                });
-                evaluated += k;
-                (z_f, sigma_f, feature_f)
-            } else {
-                let (sigma_f, feature_f) = gen.sigma_feature(&at(&z_f), shape, self.field);
-                evaluated += b * r * n;
-                (z_f, sigma_f.view([b, r, n, 1]), feature_f.view([b, r, n, -1]))
-            };
-            (Tensor::cat(&[z_f, z_c], 2), Tensor::cat(&[sigma_f, sigma_c], 2), vec![feature_f, feature_c])
-        } else {
-            (z_c, sigma_c, vec![feature_c])
-        };
-        let (z, order) = sort_depths(&z);
-        let sigma = gather_samples(&sigma, &order);
-        let sigma = match &occupied {
-            Some(o) => o.absorb_only_where_occupied(&sigma, &z),
-            None => sigma,
-        };
-        Ok(DensitySamples { sigma, features, z, order, skipped: None, evaluated })
-    }
-
-    /// The importance samples `z_f: (B, R, N)` evaluated only where they are needed.
-    /// Rays whose coarse weights inside the ray (the ones the importance pdf reads: all but
-    /// the first and last) sum to less than `importance_skip` get none: their importance
-    /// samples duplicate their first N coarse samples — depth, density and feature — so
-    /// that their merged integration is exactly their coarse one. Rays whose inside weight
-    /// lies, to the fraction `importance_concentration`, in three neighbouring intervals
-    /// get one sample in `importance_stride`: the middle one of each group of `stride`
-    /// (with the bench's sorted uniforms, an evenly spread subset), the others copy it. A
-    /// copy sits at zero distance from its original, so it absorbs nothing and carries no
-    /// weight: the ray integrates as if only the kept samples were there. Returns depths,
-    /// densities `(B, R, N, 1)`, features `(B, R, N, F)` and the queries spent.
-    fn importance_where_needed(
-        &self,
-        shape: &Film,
-        rays: &Rays,
-        coarse: Coarse,
-        z_f: &Tensor,
-    ) -> (Tensor, Tensor, Tensor, i64) {
-        let Coarse { z: z_c, weights: w_c, sigma: sigma_c, feature: feature_c } = coarse;
-        let (nc, n, width) = (z_c.size()[2], z_f.size()[2], feature_c.size()[3]);
-        let device = z_f.device();
-        let w = w_c.squeeze_dim(-1);
-        let interior = w.narrow(2, 1, nc - 2);
-        let total = interior.sum_dim_intlist(2, true, w.kind()); // (B, R, 1)
-        let need = total.ge(self.config.importance_skip);
-        let j = Tensor::arange(n, (Kind::Int64, device)).view([1, 1, n]);
-        let rep = if self.config.importance_concentration > 0.0 {
-            let k = interior.size()[2];
-            let width = k.min(3);
-            let windows = (0..width)
-                .map(|o| interior.narrow(2, o, k - width + 1))
-                .reduce(|a, b| a + b)
-                .expect("at least one window");
-            let peak = windows.amax(&[2i64][..], true);
-            let concentrated = peak.ge_tensor(&(&total * self.config.importance_concentration));
-            let stride = self.config.importance_stride as i64;
-            let thinned = (j.divide_scalar_mode(stride, "floor") * stride + stride / 2).clamp_max(n - 1);
-            thinned.expand([z_f.size()[0], z_f.size()[1], n], false).where_self(&concentrated, &j)
-        } else {
-            j.expand_as(z_f)
-        };
-        let evaluate = rep.eq_tensor(&j).logical_and(&need);
-        let (sigma, feature, k) = self.query_where(shape, rays, z_f, &evaluate, width);
-        let (z_f, sigma, feature) =
-            (z_f.gather(2, &rep, false), gather_samples(&sigma, &rep), gather_samples(&feature, &rep));
-        let need4 = need.unsqueeze(-1);
-        (
-            z_f.where_self(&need, &z_c.narrow(2, 0, n)),
-            sigma.where_self(&need4, &sigma_c.narrow(2, 0, n).to_kind(sigma.kind())),
-            feature.where_self(&need4, &feature_c.narrow(2, 0, n).to_kind(feature.kind())),
-            k,
-        )
-    }
-
-    /// N importance depths `(B, R, N)` from the coarse weights `w_c: (B, R, Nc, 1)` at
-    /// `z_c`; drawn in occupied length when `occupied` is given, so that none falls in
-    /// an empty bin.
-    fn importance(&self, w_c: &Tensor, z_c: &Tensor, noise: &Noise, occupied: Option<&OccupiedLength>) -> Tensor {
-        let s = z_c.size();
-        let (b, r, nc) = (s[0], s[1], s[2]);
-        let n = self.config.num_steps as i64;
-        let u = match &noise.importance {
-            Some(u) => u.shallow_clone(),
-            None => Tensor::rand([b, r, n], (z_c.kind(), z_c.device())),
-        };
-        let coords = match occupied {
-            Some(o) => o.length_at(z_c).to_kind(z_c.kind()),
-            None => z_c.shallow_clone(),
-        };
-        let f = importance_depths(&coords.reshape([b * r, nc]), &w_c.reshape([b * r, nc]), &u.reshape([b * r, n]))
-            .view([b, r, n]);
-        match occupied {
-            Some(o) => o.depth_at(&f).to_kind(z_c.kind()),
-            None => f,
-        }
-    }
-
-    /// The field at the samples `mask: (B, R, S)` of depths `z: (B, R, S)` only: raw
-    /// densities `(B, R, S, 1)` ([`SKIPPED_SIGMA`] elsewhere), features `(B, R, S, F)`
-    /// (0 elsewhere) and the number of queries.
-    fn query_where(&self, shape: &Film, rays: &Rays, z: &Tensor, mask: &Tensor, width: i64) -> (Tensor, Tensor, i64) {
-        let s = z.size();
-        let (b, r, n) = (s[0], s[1], s[2]);
-        let (kind, device) = (z.kind(), z.device());
-        let mut sigma = Tensor::full([b, r * n, 1], SKIPPED_SIGMA, (kind, device));
-        let mut feature = Tensor::zeros([b, r * n, width], (kind, device));
-        let mut count = 0;
-        for i in 0..b {
-            let idx = mask.get(i).reshape([-1]).nonzero().view([-1]);
-            let k = idx.size()[0];
-            if k == 0 {
-                continue;
-            }
-            let zi = z.get(i).reshape([-1]).index_select(0, &idx).unsqueeze(-1);
-            let ray = idx.divide_scalar_mode(n, "floor");
-            let x = rays.origins.get(i).index_select(0, &ray) + rays.dirs.get(i).index_select(0, &ray) * zi;
-            let (sg, ft) = self.generator.sigma_feature(&x.unsqueeze(0), &shape.narrow(i, 1), self.field);
-            let row = Tensor::from(i).to_device(device);
-            sigma = sigma.index_put(
-                &[Some(row.shallow_clone()), Some(idx.shallow_clone())],
-                &sg.get(0).to_kind(kind),
-                false,
-            );
-            feature = feature.index_put(&[Some(row), Some(idx)], &ft.get(0).to_kind(kind), false);
-            count += k;
-        }
-        (sigma.view([b, r, n, 1]), feature.view([b, r, n, width]), count)
-    }
-
-    /// Width of the colour feature (one query at the origin).
-    fn feature_width(&self, shape: &Film) -> i64 {
-        let (kind, device) = self.generator.kind_device();
-        let x = Tensor::zeros([1, 1, 3], (kind, device));
-        self.generator.sigma_feature(&x, &shape.narrow(0, 1), self.field).1.size()[2]
-    }
-
-    /// The density pass with early ray termination (no gradients): coarse samples front to
-    /// back in [`TERMINATION_SEGMENTS`] segments, each ray stopping once its transmittance
-    /// is below `termination`; importance samples only in front of where a ray stopped; a
-    /// last check on the merged samples evaluates whatever a ray skipped where the merged
-    /// transmittance is still above `termination`, so the skipped samples carry at most
-    /// that much light.
-    fn density_pass_terminating(
-        &self,
-        shape: &Film,
-        rays: &Rays,
-        noise: &Noise,
-        z_c: &Tensor,
-    ) -> Result<DensitySamples> {
-        let s = z_c.size();
-        let (b, r, nc) = (s[0], s[1], s[2]);
-        let (eps, df) = (self.config.termination, self.config.delta_final);
-        let device = z_c.device();
-        let width = self.feature_width(shape);
-        let (mut sigma_c, mut feature_c) = (
-            Tensor::full([b, r, nc, 1], SKIPPED_SIGMA, (z_c.kind(), device)),
-            Tensor::zeros([b, r, nc, width], (z_c.kind(), device)),
-        );
-        let mut evaluated = 0;
-        let mut done_c = Tensor::zeros([b, r, nc], (Kind::Bool, device));
-        let mut active = Tensor::ones([b, r, 1], (Kind::Bool, device));
-        let seg = (nc + TERMINATION_SEGMENTS - 1) / TERMINATION_SEGMENTS;
-        let pos = Tensor::arange(nc, (Kind::Int64, device)).view([1, 1, nc]);
-        let mut start = 0;
-        while start < nc {
-            let end = (start + seg).min(nc);
-            let mask = pos.ge(start).logical_and(&pos.lt(end)).logical_and(&active);
-            let (sg, ft, k) = self.query_where(shape, rays, z_c, &mask, width);
-            let m4 = mask.unsqueeze(-1);
-            sigma_c = sg.where_self(&m4, &sigma_c);
-            feature_c = ft.where_self(&m4, &feature_c);
-            done_c = done_c.logical_or(&mask);
-            evaluated += k;
-            if end < nc {
-                let t = transmittance(&sigma_c, &z_c.unsqueeze(-1), df).squeeze_dim(-1).narrow(2, end, 1);
-                active = active.logical_and(&t.ge(eps));
-            }
-            start = end;
-        }
-        let (mut z, mut sigma, mut features, mut done) = (z_c.shallow_clone(), sigma_c, vec![feature_c], done_c);
-        if self.config.hierarchical {
-            let w_c = weights_from_density(&sigma, &z_c.unsqueeze(-1), df);
-            let z_f = self.importance(&w_c, z_c, noise, None);
-            // A ray that stopped skips the importance samples behind its first skipped
-            // coarse sample.
-            let stop = z_c.where_self(&done.logical_not(), &z_c.full_like(f64::INFINITY)).amin(&[2i64][..], true);
-            let mask = z_f.lt_tensor(&stop);
-            let (sigma_f, feature_f, k) = self.query_where(shape, rays, &z_f, &mask, width);
-            evaluated += k;
-            z = Tensor::cat(&[z_f, z], 2);
-            sigma = Tensor::cat(&[sigma_f, sigma], 2);
-            features = vec![feature_f, features.remove(0)];
-            done = Tensor::cat(&[mask, done], 2);
-        }
-        // The merged integration's light in front of the first skipped sample of each ray:
-        // rays that still have more than `termination` left are evaluated in full.
-        let (zs, order) = sort_depths(&z);
-        let skipped_sorted = done.logical_not().gather(2, &order, false);
-        let t = transmittance(&gather_samples(&sigma, &order), &zs.unsqueeze(-1), df).squeeze_dim(-1);
-        let left = t.where_self(&skipped_sorted, &t.zeros_like()).amax(&[2i64][..], true);
-        let redo = done.logical_not().logical_and(&left.ge(eps));
-        if bool::try_from(redo.any())? {
-            let (sg, ft, k) = self.query_where(shape, rays, &z, &redo, width);
-            evaluated += k;
-            let m4 = redo.unsqueeze(-1);
-            sigma = sg.where_self(&m4, &sigma);
-            let joined = Tensor::cat(&features, 2);
-            let joined = ft.where_self(&m4, &joined);
-            let n_f = if self.config.hierarchical { self.config.num_steps as i64 } else { 0 };
-            features = if n_f > 0 { vec![joined.narrow(2, 0, n_f), joined.narrow(2, n_f, nc)] } else { vec![joined] };
-            done = done.logical_or(&redo);
-        }
-        let skipped = done.logical_not().gather(2, &order, false);
-        Ok(DensitySamples {
-            sigma: gather_samples(&sigma, &order),
-            features,
-            z: zs,
-            order,
-            skipped: Some(skipped),
-            evaluated,
-        })
-    }
-
-    /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
-    /// autograd is enabled): the density pass, then colour on every sample (the reference
-    /// sampler). Missing noise is drawn from libtorch's generator.
-    pub fn render_rays(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
-        if latents.batch_size() != rays.dirs.size()[0] {
-            return Err(Error::Invalid(format!(
-                "{} latents for a batch of {} ray sets",
-                latents.batch_size(),
-                rays.dirs.size()[0]
-            )));
-        }
-        let d = self.density_pass(&latents.shape, rays, noise)?;
-        let rgb: Vec<Tensor> = d
+    /// The field's second answer: colours `(B, R, S, 3)` of every sample, sorted by depth,
+    /// under `appearance` seen along `dirs: (B, R, 3)`. Colour is pointwise, so each pass
+    /// is coloured in merge order and the 3 channels sorted instead of the F features.
+    pub fn colour(&self, samples: &RaySamples, dirs: &Tensor, appearance: &Film) -> Tensor {
+        let rgb: Vec<Tensor> = samples
             .features
             .iter()
             .map(|f| {
                 let s = f.size();
                 let (b, r, n) = (s[0], s[1], s[2]);
-                let dirs = self.sample_dirs(&rays.dirs, n);
-                self.generator.radiance(&f.reshape([b, r * n, -1]), &dirs, &latents.appearance).view([b, r, n, 3])
+                let dirs = self.sample_dirs(dirs, n);
+                self.generator.radiance(&f.reshape([b, r * n, -1]), &dirs, appearance).view([b, r, n, 3])
             })
             .collect();
-        let rgb = gather_samples(&Tensor::cat(&rgb, 2), &d.order);
-        let c = composite(&rgb, &d.sigma, &d.z.unsqueeze(-1), &self.composite_options());
-        Ok(RenderedRays {
+        gather_samples(&Tensor::cat(&rgb, 2), &samples.order)
+    }
+
+    /// Colours and composites `samples` of `rays` under `appearance`.
+    fn integrate(&self, samples: RaySamples, rays: &Rays, appearance: &Film) -> RenderedRays {
+        let rgb = self.colour(&samples, &rays.dirs, appearance);
+        let c = composite(&rgb, &samples.sigma, &samples.z.unsqueeze(-1), &self.composite_options());
+        RenderedRays {
             pixel: c.pixel,
             depth: c.depth,
             opacity: c.opacity,
-            z: d.z,
+            z: samples.z,
             weights: c.weights,
             origins: rays.origins.shallow_clone(),
             dirs: rays.dirs.shallow_clone(),
-        })
+        }
+    }
+
+    /// Renders rays `(B, R, 3)` of the batch driven by `latents` (gradients flow where
+    /// autograd is enabled): sample, colour, composite. Missing noise is drawn from
+    /// libtorch's generator.
+    pub fn render_rays(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+        if latents.batch_size() != rays.dirs.size()[0] {
+            return Err(Error::Shape(format!(
+                "{} latents for a batch of {} ray sets",
+                latents.batch_size(),
+                rays.dirs.size()[0]
+            )));
+        }
+        let samples = self.sample(&latents.shape, rays, noise)?;
+        Ok(self.integrate(samples, rays, &latents.appearance))
     }
 
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so
@@ -453,11 +157,12 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
 
     /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
     /// where autograd is enabled); the result equals one [`Self::render_rays`] call.
-    pub fn render_rays_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+    fn render_rays_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
         let b = rays.dirs.size()[0];
-        self.in_chunks(rays, self.config.samples_per_ray() as i64, |start, len| {
+        let parts = self.in_chunks(rays, self.config.samples_per_ray() as i64, |start, len| {
             self.render_rays(latents, &rays.narrow(start, len), &noise.slice(0, b, start, len))
-        })
+        })?;
+        Ok(RenderedRays::join(parts))
     }
 
     /// Renders rays `(B, R, 3)` at the given sorted sample depths `z: (B, R, S)`, without
@@ -467,29 +172,29 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     pub fn render_at_depths(&self, latents: &Latents, rays: &Rays, z: &Tensor) -> Result<RenderedRays> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
         if z.dim() != 3 || z.size()[0] != b || z.size()[1] != r {
-            return Err(Error::Invalid(format!("sample depths have shape {:?}, expected [{b}, {r}, S]", z.size())));
+            return Err(Error::Shape(format!("sample depths have shape {:?}, expected [{b}, {r}, S]", z.size())));
         }
         if latents.batch_size() != b {
-            return Err(Error::Invalid(format!("{} latents for a batch of {b} ray sets", latents.batch_size())));
+            return Err(Error::Shape(format!("{} latents for a batch of {b} ray sets", latents.batch_size())));
         }
         let s = z.size()[2];
-        self.in_chunks(rays, s, |start, len| {
+        let order = Tensor::arange(s, (Kind::Int64, z.device())).view([1, 1, s]);
+        let parts = self.in_chunks(rays, s, |start, len| {
             let (rays, z) = (rays.narrow(start, len), z.narrow(1, start, len));
             let x = (rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * z.unsqueeze(-1)).reshape([b, len * s, 3]);
             let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);
-            let dirs = self.sample_dirs(&rays.dirs, s);
-            let rgb = self.generator.radiance(&feature, &dirs, &latents.appearance).view([b, len, s, 3]);
-            let c = composite(&rgb, &sigma.view([b, len, s, 1]), &z.unsqueeze(-1), &self.composite_options());
-            Ok(RenderedRays {
-                pixel: c.pixel,
-                depth: c.depth,
-                opacity: c.opacity,
+            // The samples as given: already sorted, so their order is the identity.
+            let samples = RaySamples {
                 z: z.shallow_clone(),
-                weights: c.weights,
-                origins: rays.origins,
-                dirs: rays.dirs,
-            })
-        })
+                sigma: sigma.view([b, len, s, 1]),
+                features: vec![feature.view([b, len, s, -1])],
+                order: order.expand([b, len, s], false),
+                skipped: None,
+                evaluated: b * len * s,
+            };
+            Ok(self.integrate(samples, &rays, &latents.appearance))
+        })?;
+        Ok(RenderedRays::join(parts))
     }
 
     /// Ray chunk length for `per_ray` samples per ray over `b` images.
@@ -498,18 +203,16 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     }
 
     /// Runs `f(start, len)` over consecutive ray ranges of about `chunk_points` samples
-    /// (`per_ray` samples per ray, all images of the batch) and joins the results.
-    fn in_chunks(
+    /// (`per_ray` samples per ray, all images of the batch), in ray order: the one chunk
+    /// loop of every bounded-memory render.
+    pub(crate) fn in_chunks<T>(
         &self,
         rays: &Rays,
         per_ray: i64,
-        f: impl Fn(i64, i64) -> Result<RenderedRays>,
-    ) -> Result<RenderedRays> {
+        mut f: impl FnMut(i64, i64) -> Result<T>,
+    ) -> Result<Vec<T>> {
         let (b, r) = (rays.dirs.size()[0], rays.num_rays());
         let chunk = self.chunk_rays(per_ray, b, rays.dirs.device());
-        if chunk >= r {
-            return f(0, r);
-        }
         let mut parts = Vec::new();
         let mut start = 0;
         while start < r {
@@ -517,7 +220,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
             parts.push(f(start, len)?);
             start += len;
         }
-        Ok(RenderedRays::concat(&parts))
+        Ok(parts)
     }
 
     /// Training render of `res × res` images split into `regions` horizontal bands rendered
@@ -575,7 +278,7 @@ mod tests {
         let rc = RenderConfig { num_steps: 6, chunk_points: 100, ..Default::default() };
         let r = Renderer::new(&g, &cam, &rc).unwrap();
         let z = Tensor::randn([2, 8], (Kind::Double, Device::Cpu));
-        let lat = g.latents(&z, &z, None);
+        let lat = g.latents(&z, &z, None).unwrap();
         let poses = Poses::from_angles(&[(1.0, 0.2), (1.3, -2.0)], Kind::Double, Device::Cpu);
         let (img, parts) = r.render_regions(&lat, &poses, 6, 3, &Noise::default()).unwrap();
         let rays = r.region_rays(&poses, 6, 3).unwrap();
@@ -598,7 +301,7 @@ mod tests {
         let rc = RenderConfig { num_steps: 8, jitter: false, ..Default::default() };
         let mut r = Renderer::new(&g, &cam, &rc).unwrap();
         let z = Tensor::randn([2, 8], (Kind::Float, Device::Cpu));
-        let lat = g.latents(&z, &z, None);
+        let lat = g.latents(&z, &z, None).unwrap();
         let poses = Poses::from_angles(&[(1.0, 0.2), (1.3, -2.0)], Kind::Float, Device::Cpu);
         let rays = Rays::from_poses(&poses, 8, cam.fov_deg);
         let noise = Noise { jitter: None, importance: Some(Tensor::rand([2, 64, 8], (Kind::Float, Device::Cpu))) };

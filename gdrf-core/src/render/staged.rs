@@ -46,7 +46,7 @@ impl<F: RadianceField> Renderer<'_, F> {
             return Err(Error::Invalid(format!("min_weight is {min_weight}, expected a finite weight threshold")));
         }
         tch::no_grad(|| {
-            let d = self.density_pass(shape, rays, noise)?;
+            let d = self.sample(shape, rays, noise)?;
             let s = d.z.size();
             let (b, r, n) = (s[0], s[1], s[2]);
             // Integration without colour: the weights, opacity and depth of composite().
@@ -86,7 +86,7 @@ impl<F: RadianceField> Renderer<'_, F> {
 
     /// Density-first rendering of rays `(B, R, 3)` in chunks of about `chunk_points`
     /// samples, shading only the samples whose weight exceeds `shade_min_weight`.
-    pub fn render_staged_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
+    pub(crate) fn render_staged_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
         let sides = self.shape_sides(&latents.shape, rays, noise, self.config.shade_min_weight)?;
         let parts = sides
             .into_iter()
@@ -106,16 +106,10 @@ impl<F: RadianceField> Renderer<'_, F> {
     /// The shape side of rays `(B, R, 3)` in ray chunks of about `chunk_points` samples (so
     /// that any image fits in bounded memory), to keep and shade with [`Self::shade_chunks`].
     pub fn shape_sides(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<Vec<ShapeSide>> {
-        let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        let chunk = self.chunk_rays(self.config.samples_per_ray() as i64, b, rays.dirs.device());
-        let mut sides = Vec::new();
-        let mut start = 0;
-        while start < r {
-            let len = chunk.min(r - start);
-            sides.push(self.shape_side(shape, &rays.narrow(start, len), &noise.slice(0, b, start, len), min_weight)?);
-            start += len;
-        }
-        Ok(sides)
+        let b = rays.dirs.size()[0];
+        self.in_chunks(rays, self.config.samples_per_ray() as i64, |start, len| {
+            self.shape_side(shape, &rays.narrow(start, len), &noise.slice(0, b, start, len), min_weight)
+        })
     }
 
     /// Pixels `(B, R, 3)` of kept shape sides (in ray order) under `appearance`.
@@ -128,7 +122,7 @@ impl<F: RadianceField> Renderer<'_, F> {
     /// colour branch on the kept samples only, composited as [`composite`] does.
     pub fn shade(&self, side: &ShapeSide, appearance: &Film) -> Result<Tensor> {
         if appearance.batch_size() != side.batch {
-            return Err(Error::Invalid(format!(
+            return Err(Error::Shape(format!(
                 "{} appearances for a shape side of {} images",
                 appearance.batch_size(),
                 side.batch

@@ -54,7 +54,7 @@ pub fn record(run_dir: &Path, point: &CurvePoint, results: &[EvalResult]) -> Res
     if let Some(first) = results.first() {
         io::save_png(&dir.join(FRAME), &frame(first)?)?;
     }
-    let line = serde_json::to_value(point).map_err(|e| Error::Invalid(e.to_string()))?;
+    let line = serde_json::to_value(point)?;
     run::append_jsonl(&run_dir.join(CURVE), &line)?;
     plot(run_dir)?;
     filmstrip(run_dir)?;
@@ -254,7 +254,7 @@ pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
             continue;
         }
         let img = image::open(&path)
-            .map_err(|e| Error::Invalid(format!("{}: not a readable image: {e}", path.display())))?
+            .map_err(|e| Error::Data { path: path.clone(), reason: format!("not a readable image: {e}") })?
             .to_rgb8();
         rows.push((format!("step {step}"), format!("{}k images", l["images_seen"].as_i64().unwrap_or(0) / 1000), img));
     }

@@ -27,7 +27,7 @@ use crate::{Error, Generator, Result};
 use optim::{Adam, Ema};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{nn, Device};
 
@@ -162,21 +162,23 @@ pub struct MetricsLine<'a> {
 }
 
 /// A training run in memory: both networks, the EMA generator, optimisers and counters.
+/// Its state changes only through its own steps, resumes and rollbacks; callers read it
+/// through the accessors below.
 pub struct Trainer {
-    pub cfg: TrainConfig,
-    pub run_dir: PathBuf,
-    pub device: Device,
-    pub gvs: nn::VarStore,
-    pub generator: Generator,
+    pub(crate) cfg: TrainConfig,
+    pub(crate) run_dir: PathBuf,
+    pub(crate) device: Device,
+    pub(crate) gvs: nn::VarStore,
+    pub(crate) generator: Generator,
     /// The EMA generator (samples and exports).
-    pub evs: nn::VarStore,
-    pub ema_generator: Generator,
-    pub dvs: nn::VarStore,
-    pub disc: Box<dyn Judge>,
-    pub adam_g: Adam,
-    pub adam_d: Adam,
-    pub ema: Ema,
-    pub progress: Progress,
+    pub(crate) evs: nn::VarStore,
+    pub(crate) ema_generator: Generator,
+    pub(crate) dvs: nn::VarStore,
+    pub(crate) disc: Box<dyn Judge>,
+    pub(crate) adam_g: Adam,
+    pub(crate) adam_d: Adam,
+    pub(crate) ema: Ema,
+    pub(crate) progress: Progress,
     datasets: BTreeMap<i64, Dataset>,
     permutation: Option<(i64, Vec<i64>)>,
     /// Injected faults already fired (not saved: a replay after a rollback runs clean).
@@ -185,6 +187,49 @@ pub struct Trainer {
     evaluator: Option<crate::eval::evaluator::Evaluator>,
     /// Seconds of each step since the last evaluation (the curve's step time).
     step_seconds: Vec<f64>,
+}
+
+impl Trainer {
+    /// The run's config (as resolved when it started or resumed).
+    pub fn cfg(&self) -> &TrainConfig {
+        &self.cfg
+    }
+
+    pub fn run_dir(&self) -> &Path {
+        &self.run_dir
+    }
+
+    pub fn device(&self) -> Device {
+        self.device
+    }
+
+    /// Steps, images seen, skips and rollbacks so far.
+    pub fn progress(&self) -> &Progress {
+        &self.progress
+    }
+
+    /// The EMA's schedule and update count.
+    pub fn ema(&self) -> &Ema {
+        &self.ema
+    }
+
+    /// The live generator's, the EMA generator's and the discriminator's parameters.
+    pub fn generator_vars(&self) -> &nn::VarStore {
+        &self.gvs
+    }
+
+    pub fn ema_vars(&self) -> &nn::VarStore {
+        &self.evs
+    }
+
+    pub fn disc_vars(&self) -> &nn::VarStore {
+        &self.dvs
+    }
+
+    /// Threads for the steps from now on (`--threads` on resume); 0 means all cores.
+    pub fn set_threads(&mut self, threads: usize) {
+        self.cfg.threads = threads;
+    }
 }
 
 /// When a [`Trainer::run`] session stops (besides `schedule.total_steps`).
@@ -352,7 +397,7 @@ impl Trainer {
         // The generator scored, kept whatever checkpoints are pruned later: the curve's best
         // point can be shipped.
         self.export_generator(&curve::eval_dir(&self.run_dir, point.step).join(run::GENERATOR))?;
-        serde_json::to_value(&point).map_err(|e| Error::Invalid(e.to_string()))
+        Ok(serde_json::to_value(&point)?)
     }
 
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).

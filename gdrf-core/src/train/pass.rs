@@ -120,7 +120,7 @@ pub fn patch_gradients(
     // w.r.t. the image alone, then re-render each band with gradients at the very
     // sample depths of the first pass and backpropagate its slice of that gradient.
     let (img, parts) = tch::no_grad(|| {
-        let lat = gen.latents(z, z, None);
+        let lat = gen.latents(z, z, None)?;
         renderer.render_regions(&lat, poses, res, regions, noise)
     })?;
     let img = img.detach().set_requires_grad(true);
@@ -135,11 +135,11 @@ pub fn patch_gradients(
     let len = res * res / regions;
     for (k, (part, ray)) in parts.iter().zip(&rays).enumerate() {
         // Fresh latents per band: each backward frees its own graph.
-        let lat = gen.latents(z, z, None);
+        let lat = gen.latents(z, z, None)?;
         let rr = renderer.render_at_depths(&lat, ray, &part.z)?;
         (&rr.pixel * g_rays.narrow(1, k as i64 * len, len)).sum(Kind::Float).backward();
     }
-    let lat = gen.latents(z, z, None);
+    let lat = gen.latents(z, z, None)?;
     let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
     let reg = generator_regularisation(
         regularisers(gen, &lat.shape, &samples, cfg.reg.variant),

@@ -119,7 +119,7 @@ pub fn append_metrics<T: serde::Serialize>(run_dir: &Path, line: &T) -> Result<(
 /// Appends one JSON line to the file at `path` (a whole line per write, flushed).
 pub fn append_jsonl<T: serde::Serialize>(path: &Path, line: &T) -> Result<()> {
     let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
-    let mut text = serde_json::to_string(line).map_err(|e| Error::Invalid(e.to_string()))?;
+    let mut text = serde_json::to_string(line)?;
     text.push('\n');
     f.write_all(text.as_bytes()).map_err(io(path))?;
     f.flush().map_err(io(path))

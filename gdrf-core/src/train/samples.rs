@@ -52,7 +52,7 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
             Ok(r.render_image(&lat.narrow(i, 1), &pose(yaw), res, &noise)?.rgb)
         };
         let zc = z.narrow(0, 0, count);
-        let lat = gen.latents(&zc, &zc, None);
+        let lat = gen.latents(&zc, &zc, None)?;
         let mut samples = Vec::new();
         for &yaw in &t.cfg.samples.yaws {
             for i in 0..count {
@@ -62,7 +62,7 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
         let zk = z.narrow(0, 0, k);
         let shape = zk.repeat_interleave_self_int(k, 0, None);
         let appearance = zk.repeat([k, 1]);
-        let swap_lat = gen.latents(&shape, &appearance, None);
+        let swap_lat = gen.latents(&shape, &appearance, None)?;
         let swap =
             (0..k * k).map(|i| render(&swap_lat, i, first_yaw, FieldOptions::default())).collect::<Result<Vec<_>>>()?;
         let mut template = Vec::new();

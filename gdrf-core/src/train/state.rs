@@ -226,7 +226,7 @@ impl Trainer {
         };
         let th =
             TrainingHeader { progress, stage: self.cfg.stage_index(self.progress.step), config: self.cfg.to_store() };
-        header.training = Some(serde_json::to_value(&th).map_err(|e| Error::Invalid(e.to_string()))?);
+        header.training = Some(serde_json::to_value(&th)?);
         checkpoint::save(&path, &self.state_tensors(), &header)?;
         self.export_generator(&self.run_dir.join(run::GENERATOR))?;
         run::prune_checkpoints(&self.run_dir, self.cfg.schedule.keep_checkpoints)?;

@@ -200,7 +200,7 @@ impl Trainer {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
-        let lat = tch::no_grad(|| self.generator.latents(z, z, None));
+        let lat = tch::no_grad(|| self.generator.latents(z, z, None))?;
         let fake =
             FakeBatch { latents: &lat, poses, z: Some(z), resolution: stage.resolution, regions: stage.regions, noise };
         let augmented = self.augmented(at.step, Purpose::DiscAugment);
@@ -351,7 +351,7 @@ impl Trainer {
             (0..split)
                 .map(|c| {
                     let d = draws.chunk(c, split);
-                    let lat = self.generator.latents(&d.z, &d.z, None);
+                    let lat = self.generator.latents(&d.z, &d.z, None)?;
                     let (img, parts) = renderer.render_regions(&lat, &d.poses, stage.resolution, 1, &d.noise)?;
                     Ok((d, lat, img, parts))
                 })
@@ -459,7 +459,7 @@ impl Trainer {
         let res = stage.resolution;
         let fault = if *inject { f64::NAN } else { 1.0 };
         if stage.regions == 1 {
-            let lat = gen.latents(z, z, None);
+            let lat = gen.latents(z, z, None)?;
             let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
             let mut losses = generator_pass(&renderer, judge, &fake, Some(reg_rays), at, cfg)?;
             losses.total = losses.total.g_mul_scalar(fault);
