@@ -1,7 +1,5 @@
 //! gdrf-invert: a photo into shape and appearance features (paper §5), written as the
 //! feature file gdrf-edit reads.
-mod bench;
-
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use gdrf_core::checkpoint::load_generator;
@@ -52,7 +50,7 @@ enum Command {
     /// Inversion accuracy against wall time on held-out objects of a procedural dataset:
     /// input-view and novel-view PSNR/SSIM against the ground truth, for the mean-code
     /// start, the initialiser and each speed option. Writes JSON, a plot and a table.
-    Bench(bench::BenchArgs),
+    Bench(gdrf_core::bench::invert::Options),
 }
 
 #[derive(clap::Args)]
@@ -218,7 +216,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Command::TrainInit(a)) => train_init(a),
-        Some(Command::Bench(a)) => bench::bench(a),
+        Some(Command::Bench(a)) => gdrf_core::bench::invert::run(&a).map(drop).map_err(Into::into),
         None => run(cli.invert),
     };
     if let Err(e) = result {
