@@ -3,7 +3,6 @@
 mod mesh_cmd;
 mod model;
 mod swap;
-mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -77,7 +76,7 @@ struct RenderArgs {
     /// Where the camera stands, image size, samples per ray, truncation, ablations; the
     /// turntable's views are per seed.
     #[command(flatten)]
-    view: view::ViewFlags,
+    view: gdrf_core::edit::view::ViewFlags,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
