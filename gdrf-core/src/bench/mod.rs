@@ -1,5 +1,5 @@
-//! The benchmark commands (`gdrf-edit bench`: [`render`], `gdrf-invert bench`: [`invert`],
-//! `gdrf-bench losses` and `step`: [`losses`], [`step`]) and what they share: medians, the
+//! The benchmark commands (`gdrf-edit bench`: `render`, `gdrf-invert bench`: `invert`,
+//! `gdrf-bench losses` and `step`: `losses`, `step`) and what they share: medians, the
 //! process's peak memory, running a PyTorch reference script (`scripts/reference/`) with
 //! the project's Python, and writing their JSON.
 //!

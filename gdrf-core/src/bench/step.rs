@@ -78,7 +78,7 @@ pub struct Settings {
     pub optim: OptimConfig,
     pub ema: EmaConfig,
     pub camera: CameraConfig,
-    /// What the comparison leaves out (see [`step_config`]).
+    /// What the comparison leaves out (the stage's patches, pose distribution, …).
     pub notes: Vec<String>,
 }
 
