@@ -39,6 +39,22 @@ pub enum Error {
     Invalid(String),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
+    /// What was being done when `err` stopped it, naming the flag or file
+    /// (`loading --checkpoint FILE: …`). Not `source`, as for [`Error::Io`].
+    #[error("{what}: {err}")]
+    While { what: String, err: Box<dyn std::error::Error + Send + Sync> },
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// Puts what was being done in front of an error, as [`Error::While`].
+pub trait Context<T> {
+    /// `what` names the flag or file at fault (`loading --probe FILE`).
+    fn with_context(self, what: impl FnOnce() -> String) -> Result<T>;
+}
+
+impl<T, E: std::error::Error + Send + Sync + 'static> Context<T> for std::result::Result<T, E> {
+    fn with_context(self, what: impl FnOnce() -> String) -> Result<T> {
+        self.map_err(|e| Error::While { what: what(), err: Box::new(e) })
+    }
+}

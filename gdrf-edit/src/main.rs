@@ -1,10 +1,8 @@
 //! gdrf-edit: render a GDRF generator from any viewpoint, with shape and appearance
 //! taken from different codes. `gdrf-edit --shape-from A --appearance-from B` is the swap.
-mod bench;
 mod mesh_cmd;
 mod model;
 mod swap;
-mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -44,7 +42,7 @@ enum Command {
     /// fewer samples, density-first shading, the occupancy grid and their combinations — on
     /// the trained model and on an analytic scene, with the PyTorch reference timed in the
     /// same run. Writes render.json, render.png (the Pareto plot) and render.md.
-    Bench(bench::BenchArgs),
+    Bench(gdrf_core::bench::render::Options),
     /// The shape of one source with the appearance of another, at one or more views:
     /// frame-NNN.png per view and strip.png. A source is seed:N, a feature file
     /// (.safetensors, from gdrf-invert or `features`) or a photo (inverted on the fly).
@@ -78,7 +76,7 @@ struct RenderArgs {
     /// Where the camera stands, image size, samples per ray, truncation, ablations; the
     /// turntable's views are per seed.
     #[command(flatten)]
-    view: view::ViewFlags,
+    view: gdrf_core::edit::view::ViewFlags,
     /// Turn off the stratified jitter of the coarse samples (deterministic renders).
     #[arg(long)]
     no_jitter: bool,
@@ -155,7 +153,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         None => swap::swap(cli.swap),
         Some(Command::Render(a)) => render(a),
-        Some(Command::Bench(a)) => bench::bench(a),
+        Some(Command::Bench(a)) => gdrf_core::bench::render::run(&a).map(drop).map_err(Into::into),
         Some(Command::Swap(a)) => swap::swap(a),
         Some(Command::Matrix(a)) => swap::matrix(a),
         Some(Command::Features(a)) => swap::features(a),

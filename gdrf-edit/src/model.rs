@@ -5,6 +5,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use gdrf_core::checkpoint::{load_generator, Header};
 use gdrf_core::config::CameraPreset;
+use gdrf_core::edit::view::Learned;
 use gdrf_core::edit::{Features, Source};
 use gdrf_core::field::generator::Generator;
 use gdrf_core::{device, CameraConfig, GeneratorConfig};
@@ -57,22 +58,6 @@ pub struct Model {
     pub photo: PhotoSettings,
     /// Where the generator learned: the default resolution and samples per ray.
     pub learned: Learned,
-}
-
-/// The resolution and coarse samples per ray of the generator's last training step (its
-/// checkpoint records them), else 128² and 36: what the commands render by default.
-pub struct Learned {
-    pub resolution: i64,
-    pub samples: usize,
-}
-
-impl Learned {
-    fn of(header: &Header) -> Self {
-        Self {
-            resolution: header.trained_resolution().unwrap_or(128),
-            samples: header.trained_coarse_samples().map_or(36, |n| n as usize),
-        }
-    }
 }
 
 /// The generator of `checkpoint`, or a randomly initialised one (the release's

@@ -3,10 +3,10 @@
 //! depends on the appearance, so the shape side of each (shape, view) is computed once and
 //! only the colour branch runs again for each appearance.
 use crate::model::{open, resolve, ModelArgs};
-use crate::view::ViewArgs;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
+use gdrf_core::edit::view::ViewArgs;
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::{io, Latents};
@@ -84,7 +84,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
         _ => bail!("a swap needs both --shape-from and --appearance-from"),
     };
     let (model, threads) = open(&a.model)?;
-    a.view = a.view.resolved(&model);
+    a.view = a.view.resolved(&model.learned);
     let (shape, appearance) =
         (resolve(&model, &shape_from, "--shape-from")?, resolve(&model, &appearance_from, "--appearance-from")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
@@ -129,7 +129,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
 pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     a.view.check()?;
     let (model, threads) = open(&a.model)?;
-    a.view = a.view.resolved(&model);
+    a.view = a.view.resolved(&model.learned);
     let g = &model.generator;
     let features: Vec<Features> = a
         .sources
@@ -266,7 +266,7 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
         bail!("--frames {}: expected 2 to 240", a.frames);
     }
     let (model, threads) = open(&a.model)?;
-    a.view = a.view.resolved(&model);
+    a.view = a.view.resolved(&model.learned);
     let g = &model.generator;
     let (from, to) = (resolve(&model, &a.from, "--from")?, resolve(&model, &a.to, "--to")?);
     gdrf_core::io::output_dir(&a.out, a.force, "--out")?;
@@ -330,7 +330,7 @@ pub fn features(a: FeaturesArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::view::ViewFlags;
+    use gdrf_core::edit::view::ViewFlags;
     use gdrf_core::field::generator::Generator;
     use gdrf_core::{CameraConfig, GeneratorConfig, RenderConfig};
     use tch::{nn, Device};

@@ -19,6 +19,9 @@
 //! - `coarse_fraction > 0`: the first steps compare at half resolution;
 //! - `patience > 0`: stop once the loss has not improved by `min_improvement` (relative)
 //!   for that many steps.
+/// The commands of gdrf-invert (their flags and progress bars need the `cli` feature).
+#[cfg(feature = "cli")]
+pub mod command;
 mod config;
 pub mod init;
 pub mod photo;

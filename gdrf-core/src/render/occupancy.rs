@@ -19,7 +19,7 @@ use tch::{Kind, Tensor};
 const LATTICE_MARGIN: f64 = 0.5;
 
 /// How a grid is built.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct GridConfig {
     /// Cells per side.
     pub resolution: i64,

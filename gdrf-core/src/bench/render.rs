@@ -1,69 +1,129 @@
 //! `gdrf-edit bench`: run time against error for each renderer configuration, on the
 //! trained model and on an analytic scene with exact surfaces, beside the PyTorch
 //! reference renderer timed in the same run.
-use anyhow::{bail, Context, Result};
-use clap::Args;
-use gdrf_core::bench::{median, peak_rss_mb, run_reference, run_script};
-use gdrf_core::camera::Poses;
-use gdrf_core::checkpoint::load_generator;
-use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
-use gdrf_core::eval::fidelity::psnr_all;
-use gdrf_core::field::generator::FieldOptions;
-use gdrf_core::field::RadianceField;
-use gdrf_core::nn::mapping::seeded_randn;
-use gdrf_core::paths::write_atomic;
-use gdrf_core::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
-use gdrf_core::{device, CameraConfig, Latents, RenderConfig};
+use super::{median, peak_rss_mb, run_reference, run_script, write_json};
+use crate::camera::Poses;
+use crate::checkpoint::load_generator;
+use crate::data::synth::{analytic::AnalyticField, sample_object, Category};
+use crate::error::Context;
+use crate::eval::fidelity::psnr_all;
+use crate::field::generator::FieldOptions;
+use crate::field::RadianceField;
+use crate::nn::mapping::seeded_randn;
+use crate::paths::write_atomic;
+use crate::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
+use crate::{device, CameraConfig, Error, Latents, RenderConfig, Result};
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::json;
+use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
 use tch::{Device, Kind, Tensor};
 
-#[derive(Args)]
-pub struct BenchArgs {
+/// The flags of `gdrf-edit bench`.
+#[derive(clap::Args)]
+pub struct Options {
     /// Generator checkpoint benchmarked beside the analytic scene; default: the shipped
     /// models/chairs-campaign. --generator is the same.
     #[arg(long, visible_alias = "generator", value_name = "FILE")]
-    checkpoint: Option<PathBuf>,
+    pub checkpoint: Option<PathBuf>,
     /// Image sizes (square).
     #[arg(long, value_delimiter = ',', default_value = "64,128")]
-    resolutions: Vec<i64>,
+    pub resolutions: Vec<i64>,
     /// Latent seeds of the model (z = randn after manual_seed, as `render`), and object
     /// seeds of the analytic scene (procedural chairs).
     #[arg(long, value_delimiter = ',', default_value = "0,1")]
-    seeds: Vec<i64>,
+    pub seeds: Vec<i64>,
     /// Views per seed (yaw spread over 360° at the camera's mean pitch); an occupancy grid
     /// is built once per seed and reused by its views.
     #[arg(long, default_value_t = 2)]
-    views: usize,
+    pub views: usize,
     /// Timed repetitions (after one warm-up); times are medians.
     #[arg(long, default_value_t = 3)]
-    repeats: usize,
+    pub repeats: usize,
     /// Coarse samples N of the dense reference that errors are measured against
     /// (N stratified + N importance, no jitter).
     #[arg(long, default_value_t = 256)]
-    reference_steps: usize,
+    pub reference_steps: usize,
     /// Run only the configurations whose name contains one of these (e.g. `grid,thin`);
     /// the release's sampler always runs, as the baseline of the speed-ups.
     #[arg(long, value_delimiter = ',')]
-    only: Vec<String>,
+    pub only: Vec<String>,
     /// Skip the PyTorch reference (it needs the project's Python: scripts/setup.sh).
     #[arg(long)]
-    no_pytorch: bool,
+    pub no_pytorch: bool,
     /// Output folder: render.json, render.png (time against error) and render.md (table).
     #[arg(long, default_value = "bench")]
-    out: PathBuf,
+    pub out: PathBuf,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
-    device: String,
+    pub device: String,
 }
 
-impl BenchArgs {
+impl Options {
     /// --checkpoint, else the shipped model (found from any working folder).
     fn checkpoint(&self) -> PathBuf {
-        self.checkpoint.clone().unwrap_or_else(gdrf_core::paths::shipped_generator)
+        self.checkpoint.clone().unwrap_or_else(crate::paths::shipped_generator)
     }
+}
+
+/// render.json: the run's settings and one row per scene, resolution and configuration.
+#[derive(Serialize)]
+pub struct Report {
+    pub title: &'static str,
+    /// The checkpoint as shown in committed figures (relative to the repository).
+    pub checkpoint: String,
+    pub device: String,
+    pub threads: usize,
+    pub seeds: Vec<i64>,
+    pub views: usize,
+    pub repeats: usize,
+    pub reference_steps: usize,
+    pub results: Vec<Row>,
+    /// The PyTorch reference sampler, one run per resolution (none with --no-pytorch).
+    pub pytorch: Vec<PyTorchRun>,
+}
+
+/// One renderer configuration on one scene at one resolution; times and queries are per
+/// image (medians over the repeats), errors against the dense reference.
+#[derive(Serialize)]
+pub struct Row {
+    /// `model` or `analytic`.
+    pub scene: &'static str,
+    pub resolution: i64,
+    pub config: String,
+    pub steps: usize,
+    pub min_weight: f64,
+    pub termination: f64,
+    pub importance_skip: f64,
+    pub importance_concentration: f64,
+    pub importance_stride: usize,
+    pub bf16: bool,
+    pub grid: Option<GridConfig>,
+    pub ms_per_image: f64,
+    pub ms_per_image_runs: Vec<f64>,
+    pub grid_ms_per_shape: f64,
+    /// The grid's build spread over the views that reuse it.
+    pub ms_per_image_with_grid_build: f64,
+    pub density_queries_per_image: f64,
+    pub colour_queries_per_image: f64,
+    pub grid_queries_per_shape: i64,
+    pub psnr_db: f64,
+    pub max_abs_error: f64,
+    pub opacity_error: f64,
+    pub peak_rss_mb_so_far: f64,
+}
+
+/// What scripts/reference/bench_render.py measured, and where this bench placed it.
+#[derive(Serialize)]
+pub struct PyTorchRun {
+    /// The script's own JSON (its keys are the script's business; `ms_per_image` is read).
+    #[serde(flatten)]
+    pub measured: serde_json::Value,
+    pub resolution: i64,
+    pub config: String,
+    /// Largest difference of its images from the Rust reference configuration's, in
+    /// colour units of `[0, 1]`.
+    pub max_abs_difference_from_rust: f64,
 }
 
 /// One renderer configuration.
@@ -79,7 +139,6 @@ struct Setting {
     /// The networks' hidden layers in bfloat16 (integration stays float32); the model only.
     bf16: bool,
 }
-
 impl Setting {
     /// The renderer's config of this setting (no jitter: deterministic renders).
     fn render_config(&self) -> RenderConfig {
@@ -189,12 +248,15 @@ struct Scene<'a, F: RadianceField> {
     latents: Vec<Latents>,
 }
 
-pub fn bench(a: BenchArgs) -> Result<()> {
+/// Runs the benchmark and writes render.json, render.md and render.png into `--out`.
+pub fn run(a: &Options) -> Result<Report> {
     if a.seeds.is_empty() || a.views == 0 || a.repeats == 0 || a.resolutions.is_empty() {
-        bail!("--seeds, --views, --repeats and --resolutions need at least one value each");
+        return Err(Error::Invalid(
+            "--seeds, --views, --repeats and --resolutions need at least one value each".into(),
+        ));
     }
     if let Some(r) = a.resolutions.iter().find(|r| !(8..=1024).contains(*r)) {
-        bail!("--resolutions: {r} is outside 8..=1024");
+        return Err(Error::Invalid(format!("--resolutions: {r} is outside 8..=1024")));
     }
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
@@ -202,7 +264,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .with_context(|| format!("loading --checkpoint {}", a.checkpoint().display()))?;
     let camera = loaded.header.camera.clone().unwrap_or_default();
     let latent = loaded.generator.cfg.latent_dim as i64;
-    let poses = gdrf_core::camera::turntable(camera.v_mean, 0.4, a.views);
+    let poses = crate::camera::turntable(camera.v_mean, 0.4, a.views);
     let model = Scene {
         name: "model",
         fields: vec![&loaded.generator; a.seeds.len()],
@@ -222,7 +284,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
             let (shape, app) = sample_object(Category::Chairs, s as u64);
             AnalyticField::new(&shape, &app, &camera, 500.0, 0.004)
         })
-        .collect::<gdrf_core::Result<_>>()?;
+        .collect::<Result<_>>()?;
     let analytic = Scene {
         name: "analytic",
         fields: objects.iter().collect(),
@@ -240,49 +302,51 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let mut results = Vec::new();
     let mut pytorch = Vec::new();
     for &res in &a.resolutions {
-        let (rows, images) = run_scene(&model, &camera, &poses, res, &a)?;
+        let (rows, images) = run_scene(&model, &camera, &poses, res, a)?;
         results.extend(rows);
         if !a.no_pytorch {
-            pytorch.push(pytorch_reference(&a, &poses, res, &images)?);
+            pytorch.push(pytorch_reference(a, &poses, res, &images)?);
         }
-        let (rows, _) = run_scene(&analytic, &camera, &poses, res, &a)?;
+        let (rows, _) = run_scene(&analytic, &camera, &poses, res, a)?;
         results.extend(rows);
     }
-    let doc = json!({
-        "title": "renderer: time against error",
-        "checkpoint": gdrf_core::paths::shown(&a.checkpoint()),
-        "device": format!("{dev:?}"),
-        "threads": threads,
-        "seeds": a.seeds,
-        "views": a.views,
-        "repeats": a.repeats,
-        "reference_steps": a.reference_steps,
-        "results": results,
-        "pytorch": pytorch,
-    });
+    let report = Report {
+        title: "renderer: time against error",
+        checkpoint: crate::paths::shown(&a.checkpoint()),
+        device: format!("{dev:?}"),
+        threads,
+        seeds: a.seeds.clone(),
+        views: a.views,
+        repeats: a.repeats,
+        reference_steps: a.reference_steps,
+        results,
+        pytorch,
+    };
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating --out {}", a.out.display()))?;
     let json_path = a.out.join("render.json");
-    write_atomic(&json_path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
-    let md = markdown(&doc);
+    write_json(&json_path, &report)?;
+    let md = report.markdown();
     write_atomic(&a.out.join("render.md"), md.as_bytes())?;
     let png = a.out.join("render.png");
     run_script("plot_render_bench.py", &[&json_path, &png])?;
     println!("{md}");
     println!("wrote {}, {} and {}", json_path.display(), png.display(), a.out.join("render.md").display());
-    Ok(())
+    Ok(report)
 }
 
 fn max_abs(t: &Tensor) -> f64 {
     f64::try_from(t.abs().max().to_kind(Kind::Double)).unwrap_or(f64::NAN)
 }
 
+/// Every configuration (after --only) on `scene` at `res`², and the `(S·V, 3, res, res)`
+/// images of the release's sampler (the PyTorch reference's comparison).
 fn run_scene<F: RadianceField>(
     scene: &Scene<F>,
     camera: &CameraConfig,
     poses: &[(f64, f64)],
     res: i64,
-    a: &BenchArgs,
-) -> Result<(Vec<serde_json::Value>, Tensor)> {
+    a: &Options,
+) -> Result<(Vec<Row>, Tensor)> {
     let (_, dev) = scene.fields[0].kind_device();
     let r = res * res;
     let render_all =
@@ -342,7 +406,7 @@ fn run_scene<F: RadianceField>(
                         r.field = opts;
                         r.occupancy_grid(&l.shape, cfg).map(Some)
                     })
-                    .collect::<gdrf_core::Result<Vec<_>>>()?;
+                    .collect::<Result<Vec<_>>>()?;
                 let ms = 1000.0 * t.elapsed().as_secs_f64() / scene.fields.len() as f64;
                 let q = grids.iter().flatten().map(|g| g.evaluated).sum::<i64>() / scene.fields.len() as i64;
                 (grids, ms, q)
@@ -364,49 +428,45 @@ fn run_scene<F: RadianceField>(
             reference_images = img.rgb.shallow_clone();
         }
         let ms = median(&times);
-        rows.push(json!({
-            "scene": scene.name,
-            "resolution": res,
-            "config": s.name,
-            "steps": s.steps,
-            "min_weight": s.min_weight,
-            "termination": s.termination,
-            "importance_skip": s.importance_skip,
-            "importance_concentration": s.thin.0,
-            "importance_stride": s.thin.1,
-            "bf16": s.bf16,
-            "grid": s.grid.map(|g| json!({"resolution": g.resolution, "threshold": g.threshold, "dilation": g.dilation, "cells_only": g.cells_only})),
-            "ms_per_image": ms,
-            "ms_per_image_runs": times,
-            "grid_ms_per_shape": grid_ms,
-            "ms_per_image_with_grid_build": ms + grid_ms / poses.len() as f64,
-            "density_queries_per_image": dq as f64 / n_images,
-            "colour_queries_per_image": cq as f64 / n_images,
-            "grid_queries_per_shape": grid_queries,
-            "psnr_db": psnr_all(&img.rgb, &dense.rgb)?,
-            "max_abs_error": max_abs(&((&img.rgb - &dense.rgb) * 0.5)),
-            "opacity_error": max_abs(&(&img.opacity - &dense.opacity)),
-            "peak_rss_mb_so_far": peak_rss_mb(),
-        }));
+        rows.push(Row {
+            scene: scene.name,
+            resolution: res,
+            config: s.name.clone(),
+            steps: s.steps,
+            min_weight: s.min_weight,
+            termination: s.termination,
+            importance_skip: s.importance_skip,
+            importance_concentration: s.thin.0,
+            importance_stride: s.thin.1,
+            bf16: s.bf16,
+            grid: s.grid,
+            ms_per_image: ms,
+            grid_ms_per_shape: grid_ms,
+            ms_per_image_with_grid_build: ms + grid_ms / poses.len() as f64,
+            density_queries_per_image: dq as f64 / n_images,
+            colour_queries_per_image: cq as f64 / n_images,
+            grid_queries_per_shape: grid_queries,
+            psnr_db: psnr_all(&img.rgb, &dense.rgb)?,
+            max_abs_error: max_abs(&((&img.rgb - &dense.rgb) * 0.5)),
+            opacity_error: max_abs(&(&img.opacity - &dense.opacity)),
+            peak_rss_mb_so_far: peak_rss_mb(),
+            ms_per_image_runs: times,
+        });
         bar.inc(1);
     }
     bar.finish_and_clear();
     for row in &rows {
         eprintln!(
             "  {:<8} {res:>4}² {:<26} {:>8.1} ms/image {:>6.1} dB  opacity err {:.1e}",
-            scene.name,
-            row["config"].as_str().unwrap_or(""),
-            row["ms_per_image"].as_f64().unwrap_or(f64::NAN),
-            row["psnr_db"].as_f64().unwrap_or(f64::NAN),
-            row["opacity_error"].as_f64().unwrap_or(f64::NAN)
+            scene.name, row.config, row.ms_per_image, row.psnr_db, row.opacity_error
         );
     }
     Ok((rows, reference_images))
 }
 
 /// The PyTorch reference sampler on the same checkpoint, seeds, poses and uniforms; its
-/// images are compared with the Rust reference configuration's.
-fn pytorch_reference(a: &BenchArgs, poses: &[(f64, f64)], res: i64, rust_images: &Tensor) -> Result<serde_json::Value> {
+/// `(S·V, 3, res, res)` images are compared with the Rust reference configuration's.
+fn pytorch_reference(a: &Options, poses: &[(f64, f64)], res: i64, rust_images: &Tensor) -> Result<PyTorchRun> {
     let tmp = std::env::temp_dir().join(format!("gdrf-bench-render-{}-{res}.safetensors", std::process::id()));
     let n = release_steps(res);
     let args: Vec<String> = vec![
@@ -424,7 +484,7 @@ fn pytorch_reference(a: &BenchArgs, poses: &[(f64, f64)], res: i64, rust_images:
         "--images-out".into(),
         tmp.display().to_string(),
     ];
-    let mut v = run_reference("bench_render.py", &args)?;
+    let measured = run_reference("bench_render.py", &args)?;
     let images =
         Tensor::read_safetensors(&tmp).with_context(|| format!("reading the reference's images {}", tmp.display()))?;
     let _ = std::fs::remove_file(&tmp);
@@ -432,56 +492,68 @@ fn pytorch_reference(a: &BenchArgs, poses: &[(f64, f64)], res: i64, rust_images:
         .into_iter()
         .find(|(k, _)| k == "images")
         .map(|(_, t)| t)
-        .context("no 'images' in the reference's output")?;
+        .ok_or_else(|| Error::Data { path: tmp.clone(), reason: "no 'images' in the reference's output".into() })?;
     let diff = max_abs(&((theirs.to_device(rust_images.device()) - rust_images) * 0.5));
-    v["resolution"] = json!(res);
-    v["config"] = json!(format!("reference N={n}"));
-    v["max_abs_difference_from_rust"] = json!(diff);
+    let run = PyTorchRun {
+        measured,
+        resolution: res,
+        config: format!("reference N={n}"),
+        max_abs_difference_from_rust: diff,
+    };
     eprintln!(
         "  pytorch  {res:>4}² reference N={n}: {:.1} ms/image, images within {diff:.1e} of Rust's",
-        v["ms_per_image"].as_f64().unwrap_or(f64::NAN)
+        run.ms_per_image()
     );
-    Ok(v)
+    Ok(run)
 }
 
-/// The README table: per scene and resolution, each configuration's time, speed-up over
-/// the release's sampler in this binary, queries and errors; the PyTorch reference's time.
-fn markdown(doc: &serde_json::Value) -> String {
-    let mut s = String::from(
-        "| scene | size | configuration | ms/image | speed-up | density / colour queries per image | PSNR (dB) | max error | opacity error |\n|---|---|---|---|---|---|---|---|---|\n",
-    );
-    let rows = doc["results"].as_array().cloned().unwrap_or_default();
-    for row in &rows {
-        let (scene, res) = (row["scene"].as_str().unwrap_or(""), row["resolution"].as_i64().unwrap_or(0));
-        let base = rows
-            .iter()
-            .find(|r| {
-                r["scene"] == row["scene"]
-                    && r["resolution"] == row["resolution"]
-                    && r["config"] == json!(format!("reference N={}", release_steps(res)))
-            })
-            .and_then(|r| r["ms_per_image"].as_f64())
-            .unwrap_or(f64::NAN);
-        let ms = row["ms_per_image"].as_f64().unwrap_or(f64::NAN);
-        let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
-        s += &format!(
-            "| {scene} | {res}² | {} | {ms:.1} | {:.2}× | {:.0} / {:.0} | {:.1} | {:.3} | {:.1e} |\n",
-            row["config"].as_str().unwrap_or(""),
-            base / ms,
-            f("density_queries_per_image"),
-            f("colour_queries_per_image"),
-            f("psnr_db"),
-            f("max_abs_error"),
-            f("opacity_error"),
-        );
+impl PyTorchRun {
+    /// The script's median milliseconds per image (NaN when it gave none).
+    fn ms_per_image(&self) -> f64 {
+        self.measured["ms_per_image"].as_f64().unwrap_or(f64::NAN)
     }
-    for p in doc["pytorch"].as_array().cloned().unwrap_or_default() {
-        s += &format!(
-            "| model | {}² | PyTorch reference, {} | {:.1} | | | | | |\n",
-            p["resolution"].as_i64().unwrap_or(0),
-            p["config"].as_str().unwrap_or(""),
-            p["ms_per_image"].as_f64().unwrap_or(f64::NAN)
+}
+
+impl Report {
+    /// The README table: per scene and resolution, each configuration's time, speed-up
+    /// over the release's sampler in this binary, queries and errors; the PyTorch
+    /// reference's time.
+    pub fn markdown(&self) -> String {
+        let mut s = String::from(
+            "| scene | size | configuration | ms/image | speed-up | density / colour queries per image | PSNR (dB) | max error | opacity error |\n|---|---|---|---|---|---|---|---|---|\n",
         );
+        for row in &self.results {
+            let base = self
+                .results
+                .iter()
+                .find(|r| {
+                    r.scene == row.scene
+                        && r.resolution == row.resolution
+                        && r.config == format!("reference N={}", release_steps(row.resolution))
+                })
+                .map_or(f64::NAN, |r| r.ms_per_image);
+            s += &format!(
+                "| {} | {}² | {} | {:.1} | {:.2}× | {:.0} / {:.0} | {:.1} | {:.3} | {:.1e} |\n",
+                row.scene,
+                row.resolution,
+                row.config,
+                row.ms_per_image,
+                base / row.ms_per_image,
+                row.density_queries_per_image,
+                row.colour_queries_per_image,
+                row.psnr_db,
+                row.max_abs_error,
+                row.opacity_error,
+            );
+        }
+        for p in &self.pytorch {
+            s += &format!(
+                "| model | {}² | PyTorch reference, {} | {:.1} | | | | | |\n",
+                p.resolution,
+                p.config,
+                p.ms_per_image()
+            );
+        }
+        s
     }
-    s
 }

@@ -1,90 +1,122 @@
 //! `gdrf-invert bench`: inversion accuracy against wall time on held-out objects of a
 //! procedural dataset, whose ground truth renders any object at any pose.
-use anyhow::{bail, Context, Result};
-use clap::Args;
-use gdrf_core::checkpoint::load_generator;
-use gdrf_core::data::synth::render_object;
-use gdrf_core::data::{Metadata, Split};
-use gdrf_core::device;
-use gdrf_core::edit::{generator_id, Features};
-use gdrf_core::eval::fidelity::{psnr, ssim};
-use gdrf_core::eval::probe::{structure_classes, Probe};
-use gdrf_core::invert::init::Initialiser;
-use gdrf_core::invert::photo::{load_photo, Fit};
-use gdrf_core::invert::{load_effnet, render_views, start_for_photo, InvertConfig, Inverter, Perceptual};
-use gdrf_core::plot::{draw_panels, Panel, Series};
-use gdrf_core::pretrained::effnet::EfficientNetLite0;
-use gdrf_core::{CameraConfig, Generator};
+use super::write_json;
+use crate::checkpoint::load_generator;
+use crate::data::synth::render_object;
+use crate::data::{Metadata, Split};
+use crate::edit::{generator_id, Features};
+use crate::error::Context;
+use crate::eval::fidelity::{psnr, ssim};
+use crate::eval::probe::{structure_classes, Probe};
+use crate::invert::init::Initialiser;
+use crate::invert::photo::{load_photo, Fit};
+use crate::invert::{load_effnet, render_views, start_for_photo, InvertConfig, Inverter, Perceptual};
+use crate::plot::{draw_panels, Panel, Series};
+use crate::pretrained::effnet::EfficientNetLite0;
+use crate::{device, CameraConfig, Error, Generator, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use std::path::PathBuf;
-use tch::{Device, Kind, Tensor};
+use std::path::{Path, PathBuf};
+use tch::{Kind, Tensor};
 
-#[derive(Args)]
-pub struct BenchArgs {
+/// The flags of `gdrf-invert bench`.
+#[derive(clap::Args)]
+pub struct Options {
     /// Generator checkpoint; default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
-    generator: Option<PathBuf>,
+    pub generator: Option<PathBuf>,
     /// The initialiser (from train-init); without it only the mean-code start is measured.
     #[arg(long, value_name = "FILE")]
-    init: Option<PathBuf>,
+    pub init: Option<PathBuf>,
     /// A procedural dataset folder (its held-out objects are inverted).
     #[arg(long, default_value = "data/chairs-64")]
-    dataset: PathBuf,
+    pub dataset: PathBuf,
     /// Held-out objects to invert.
     #[arg(long, default_value_t = 4)]
-    images: usize,
+    pub images: usize,
     /// Novel views per object (yaw offsets spread over the turn, same pitch).
     #[arg(long, default_value_t = 4)]
-    views: usize,
+    pub views: usize,
     /// Steps of the reference optimisation (the first method; the paper's 2 000).
     #[arg(long, default_value_t = 2000)]
-    reference_steps: usize,
+    pub reference_steps: usize,
     /// Steps of every other method.
     #[arg(long, default_value_t = 200)]
-    steps: usize,
+    pub steps: usize,
     /// Render side during the optimisation and for every comparison.
     #[arg(long, default_value_t = 32)]
-    resolution: i64,
+    pub resolution: i64,
     #[arg(long, default_value_t = 12)]
-    samples: usize,
+    pub samples: usize,
     /// Adam's learning rate of the reference (the plain optimisation).
     #[arg(long, default_value_t = 0.01)]
-    reference_lr: f64,
+    pub reference_lr: f64,
     /// Adam's learning rate of every other method.
     #[arg(long, default_value_t = InvertConfig::default().lr)]
-    lr: f64,
+    pub lr: f64,
     /// The ground-truth probe (`gdrf-train eval train-probe`) whose structure classes on the novel
     /// views are compared with the objects' own; default: the shipped
     /// models/chairs-probe.
     #[arg(long, value_name = "FILE")]
-    probe: Option<PathBuf>,
+    pub probe: Option<PathBuf>,
     /// Output stem: STEM.json, STEM.png (novel-view PSNR against seconds), STEM.md.
     #[arg(long, default_value = "docs/bench/invert")]
-    out: PathBuf,
+    pub out: PathBuf,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
-    device: String,
+    pub device: String,
+}
+
+/// STEM.json: the run's settings, the initialiser's pose error and every method's points.
+#[derive(Serialize)]
+pub struct Report {
+    /// The generator and the probe as shown in committed figures (relative to the
+    /// repository).
+    pub generator: String,
+    pub init: Option<String>,
+    pub dataset: String,
+    pub images: usize,
+    pub views: usize,
+    pub steps: usize,
+    pub reference_steps: usize,
+    pub resolution: i64,
+    pub samples: usize,
+    pub lr: f64,
+    pub reference_lr: f64,
+    pub device: String,
+    pub threads: usize,
+    pub initialiser_pose_error_deg: PoseError,
+    pub probe: String,
+    /// The probe on the ground-truth novel views themselves: the best agreement it can give.
+    pub structure_agreement_of_the_ground_truth_views: f64,
+    pub points: Vec<Point>,
+}
+
+/// The initialiser's mean pose error in degrees over the objects (none without --init).
+#[derive(Serialize)]
+pub struct PoseError {
+    pub pitch: Option<f64>,
+    pub yaw: Option<f64>,
 }
 
 /// One measured point of one method.
 #[derive(Serialize, Clone)]
-struct Point {
-    method: String,
+pub struct Point {
+    pub method: String,
     /// The step budget at this point, and the steps actually run (fewer after an early stop),
     /// averaged over the objects.
-    steps: usize,
-    steps_run: f64,
+    pub steps: usize,
+    pub steps_run: f64,
     /// Seconds inside the optimisation's steps (the initialiser's prediction included),
     /// averaged over the objects.
-    seconds: f64,
-    input_psnr: f64,
-    input_ssim: f64,
-    novel_psnr: f64,
-    novel_ssim: f64,
+    pub seconds: f64,
+    pub input_psnr: f64,
+    pub input_ssim: f64,
+    pub novel_psnr: f64,
+    pub novel_ssim: f64,
     /// Fraction of the probe's structure classes (legs, back, arms, seat) on the novel
     /// views that match the object's true ones.
-    structure_agreement: f64,
+    pub structure_agreement: f64,
 }
 
 struct Case {
@@ -135,13 +167,14 @@ fn score(
     ])
 }
 
-pub fn bench(a: BenchArgs) -> Result<()> {
+/// Runs the benchmark and writes STEM.json, STEM.png and STEM.md (STEM: `--out`).
+pub fn run(a: &Options) -> Result<Report> {
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
     if a.images == 0 || a.views == 0 || a.steps == 0 || a.reference_steps == 0 {
-        bail!("--images, --views, --steps and --reference-steps must be at least 1");
+        return Err(Error::Invalid("--images, --views, --steps and --reference-steps must be at least 1".into()));
     }
-    let gen_path = a.generator.clone().unwrap_or_else(gdrf_core::paths::shipped_generator);
+    let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);
@@ -151,7 +184,12 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     opts.resolution = a.resolution as usize;
     let held: Vec<_> = meta.images.iter().filter(|r| r.split == Split::HeldOut).take(a.images).collect();
     if held.len() < a.images {
-        bail!("{} has {} held-out images, --images asks for {}", a.dataset.display(), held.len(), a.images);
+        return Err(Error::Invalid(format!(
+            "{} has {} held-out images, --images asks for {}",
+            a.dataset.display(),
+            held.len(),
+            a.images
+        )));
     }
     let res = a.resolution;
     let mut cases = Vec::new();
@@ -173,7 +211,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         });
     }
     let probe_path =
-        a.probe.clone().unwrap_or_else(|| gdrf_core::paths::repo_root().join("models/chairs-probe/probe.safetensors"));
+        a.probe.clone().unwrap_or_else(|| crate::paths::repo_root().join("models/chairs-probe/probe.safetensors"));
     let probe = Probe::load(&probe_path, dev).with_context(|| format!("loading --probe {}", probe_path.display()))?;
     let effnet = load_effnet(dev)?;
     let perc = Perceptual::effnet(&effnet);
@@ -308,47 +346,6 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         bar.suspend(|| eprintln!("done: {name}"));
     }
     bar.finish_and_clear();
-    write_outputs(&a, &points, &pose_errors, truth_agreement, [&gen_path, &probe_path], dev, threads)
-}
-
-fn write_outputs(
-    a: &BenchArgs,
-    points: &[Point],
-    pose_errors: &[(f64, f64)],
-    truth_agreement: f64,
-    [gen, probe]: [&std::path::Path; 2],
-    dev: Device,
-    threads: usize,
-) -> Result<()> {
-    let methods: Vec<String> = points.iter().fold(Vec::new(), |mut v, p| {
-        if !v.contains(&p.method) {
-            v.push(p.method.clone());
-        }
-        v
-    });
-    let series = |f: &dyn Fn(&Point) -> (f64, f64)| -> Vec<Series> {
-        methods
-            .iter()
-            .map(|m| Series { name: m.clone(), points: points.iter().filter(|p| &p.method == m).map(f).collect() })
-            .collect()
-    };
-    let panels = [
-        Panel {
-            title: "novel-view PSNR vs seconds".into(),
-            series: series(&|p| (p.seconds, p.novel_psnr)),
-            log_y: false,
-        },
-        Panel {
-            title: "input-view PSNR vs seconds".into(),
-            series: series(&|p| (p.seconds, p.input_psnr)),
-            log_y: false,
-        },
-    ];
-    if let Some(dir) = a.out.parent() {
-        std::fs::create_dir_all(dir).ok();
-    }
-    let stem = a.out.display().to_string();
-    gdrf_core::io::save_png(&PathBuf::from(format!("{stem}.png")), &draw_panels(&panels, 2, 420, 280))?;
     let mean_pose = |k: usize| {
         if pose_errors.is_empty() {
             None
@@ -356,58 +353,116 @@ fn write_outputs(
             Some(pose_errors.iter().map(|e| if k == 0 { e.0 } else { e.1 }).sum::<f64>() / pose_errors.len() as f64)
         }
     };
-    let json = serde_json::json!({
-        "generator": gdrf_core::paths::shown(gen),
-        "init": a.init.as_deref().map(gdrf_core::paths::shown),
-        "dataset": a.dataset.display().to_string(),
-        "images": a.images, "views": a.views, "steps": a.steps, "reference_steps": a.reference_steps,
-        "resolution": a.resolution, "samples": a.samples, "lr": a.lr, "reference_lr": a.reference_lr,
-        "device": format!("{dev:?}"), "threads": threads,
-        "initialiser_pose_error_deg": {"pitch": mean_pose(0), "yaw": mean_pose(1)},
-        "probe": gdrf_core::paths::shown(probe),
-        "structure_agreement_of_the_ground_truth_views": truth_agreement,
-        "points": points,
-    });
-    gdrf_core::paths::write_atomic(
-        &PathBuf::from(format!("{stem}.json")),
-        serde_json::to_string_pretty(&json)?.as_bytes(),
-    )?;
-    let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement |\n|---|---|---|---|---|---|---|---|\n");
-    for p in points {
-        md += &format!(
-            "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} |\n",
-            p.method,
-            p.steps,
-            p.steps_run,
-            p.seconds,
-            p.input_psnr,
-            p.input_ssim,
-            p.novel_psnr,
-            p.novel_ssim,
-            p.structure_agreement
-        );
+    let report = Report {
+        generator: crate::paths::shown(&gen_path),
+        init: a.init.as_deref().map(crate::paths::shown),
+        dataset: a.dataset.display().to_string(),
+        images: a.images,
+        views: a.views,
+        steps: a.steps,
+        reference_steps: a.reference_steps,
+        resolution: a.resolution,
+        samples: a.samples,
+        lr: a.lr,
+        reference_lr: a.reference_lr,
+        device: format!("{dev:?}"),
+        threads,
+        initialiser_pose_error_deg: PoseError { pitch: mean_pose(0), yaw: mean_pose(1) },
+        probe: crate::paths::shown(&probe_path),
+        structure_agreement_of_the_ground_truth_views: truth_agreement,
+        points,
+    };
+    report.write(&a.out)?;
+    Ok(report)
+}
+
+impl Report {
+    /// The methods in the order they ran (the reference first).
+    fn methods(&self) -> Vec<String> {
+        self.points.iter().fold(Vec::new(), |mut v, p| {
+            if !v.contains(&p.method) {
+                v.push(p.method.clone());
+            }
+            v
+        })
     }
-    // Against the reference (the first method): the novel-view PSNR gain of its last point
-    // over its start, and the first point of each method reaching 95 % of that gain.
-    let reference: Vec<&Point> = points.iter().filter(|p| p.method == methods[0]).collect();
-    let (r0, r1) = (reference[0], reference[reference.len() - 1]);
-    let gain = r1.novel_psnr - r0.novel_psnr;
-    md += &format!(
-        "\nReference: {}, novel-view PSNR {:.2} → {:.2} dB (gain {gain:.2} dB) in {:.1} s.\n\n| method | first point with ≥ 95 % of the gain | seconds | fraction of the reference's time |\n|---|---|---|---|\n",
-        methods[0], r0.novel_psnr, r1.novel_psnr, r1.seconds
-    );
-    for m in &methods {
-        let hit = points.iter().filter(|p| &p.method == m).find(|p| p.novel_psnr - r0.novel_psnr >= 0.95 * gain);
-        md += &match hit {
-            Some(p) => format!("| {m} | {} steps | {:.2} | {:.3} |\n", p.steps, p.seconds, p.seconds / r1.seconds),
-            None => format!("| {m} | not reached | — | — |\n"),
+
+    /// Writes STEM.png (PSNR against seconds), STEM.json and STEM.md, and prints the table.
+    fn write(&self, out: &Path) -> Result<()> {
+        let methods = self.methods();
+        let series = |f: &dyn Fn(&Point) -> (f64, f64)| -> Vec<Series> {
+            methods
+                .iter()
+                .map(|m| Series {
+                    name: m.clone(),
+                    points: self.points.iter().filter(|p| &p.method == m).map(f).collect(),
+                })
+                .collect()
         };
+        let panels = [
+            Panel {
+                title: "novel-view PSNR vs seconds".into(),
+                series: series(&|p| (p.seconds, p.novel_psnr)),
+                log_y: false,
+            },
+            Panel {
+                title: "input-view PSNR vs seconds".into(),
+                series: series(&|p| (p.seconds, p.input_psnr)),
+                log_y: false,
+            },
+        ];
+        if let Some(dir) = out.parent() {
+            std::fs::create_dir_all(dir).ok();
+        }
+        let stem = out.display().to_string();
+        crate::io::save_png(&PathBuf::from(format!("{stem}.png")), &draw_panels(&panels, 2, 420, 280))?;
+        write_json(&PathBuf::from(format!("{stem}.json")), self)?;
+        let md = self.markdown();
+        crate::paths::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
+        print!("{md}");
+        println!("wrote {stem}.json, {stem}.png, {stem}.md");
+        Ok(())
     }
-    md += &format!(
-        "\nStructure agreement: the fraction of the probe's structure classes (legs, back, arms, seat) on the novel views that match the object's own; on the ground-truth views themselves the probe agrees {truth_agreement:.3}.\n"
-    );
-    gdrf_core::paths::write_atomic(&PathBuf::from(format!("{stem}.md")), md.as_bytes())?;
-    print!("{md}");
-    println!("wrote {stem}.json, {stem}.png, {stem}.md");
-    Ok(())
+
+    /// Every point; then, against the reference (the first method), the first point of each
+    /// method reaching 95 % of the reference's novel-view PSNR gain.
+    pub fn markdown(&self) -> String {
+        let (points, methods) = (&self.points, self.methods());
+        let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement |\n|---|---|---|---|---|---|---|---|\n");
+        for p in points {
+            md += &format!(
+                "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} |\n",
+                p.method,
+                p.steps,
+                p.steps_run,
+                p.seconds,
+                p.input_psnr,
+                p.input_ssim,
+                p.novel_psnr,
+                p.novel_ssim,
+                p.structure_agreement
+            );
+        }
+        // Against the reference (the first method): the novel-view PSNR gain of its last
+        // point over its start, and the first point of each method reaching 95 % of that gain.
+        let reference: Vec<&Point> = points.iter().filter(|p| p.method == methods[0]).collect();
+        let (r0, r1) = (reference[0], reference[reference.len() - 1]);
+        let gain = r1.novel_psnr - r0.novel_psnr;
+        md += &format!(
+            "\nReference: {}, novel-view PSNR {:.2} → {:.2} dB (gain {gain:.2} dB) in {:.1} s.\n\n| method | first point with ≥ 95 % of the gain | seconds | fraction of the reference's time |\n|---|---|---|---|\n",
+            methods[0], r0.novel_psnr, r1.novel_psnr, r1.seconds
+        );
+        for m in &methods {
+            let hit = points.iter().filter(|p| &p.method == m).find(|p| p.novel_psnr - r0.novel_psnr >= 0.95 * gain);
+            md += &match hit {
+                Some(p) => format!("| {m} | {} steps | {:.2} | {:.3} |\n", p.steps, p.seconds, p.seconds / r1.seconds),
+                None => format!("| {m} | not reached | — | — |\n"),
+            };
+        }
+        md += &format!(
+            "\nStructure agreement: the fraction of the probe's structure classes (legs, back, arms, seat) on the novel views that match the object's own; on the ground-truth views themselves the probe agrees {:.3}.\n",
+            self.structure_agreement_of_the_ground_truth_views
+        );
+        md
+    }
 }

@@ -1,0 +1,157 @@
+//! The benchmark commands (`gdrf-edit bench`: `render`, `gdrf-invert bench`: `invert`,
+//! `gdrf-bench losses` and `step`: `losses`, `step`) and what they share: medians, the
+//! process's peak memory, running a PyTorch reference script (`scripts/reference/`) with
+//! the project's Python, and writing their JSON.
+//!
+//! The commands themselves come with the `cli` feature: their options are the binaries'
+//! flags (clap), and they draw progress bars (indicatif) as they run.
+use crate::error::Context;
+use crate::paths::{python, repo_root, write_atomic};
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+#[cfg(feature = "cli")]
+pub mod invert;
+#[cfg(feature = "cli")]
+pub mod losses;
+#[cfg(feature = "cli")]
+pub mod render;
+#[cfg(feature = "cli")]
+pub mod step;
+
+/// Median of `v` (NaN for an empty slice).
+pub fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    match s.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => s[n / 2],
+        n => 0.5 * (s[n / 2 - 1] + s[n / 2]),
+    }
+}
+
+/// The process's peak resident memory so far in MB (Linux `VmHWM`; NaN elsewhere).
+pub fn peak_rss_mb() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).map(|l| l.to_string()))
+        .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(f64::NAN)
+}
+
+/// Runs `scripts/reference/<script>` with the project's Python and reads the JSON it
+/// prints (its progress messages go to our stderr).
+pub fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value> {
+    eprintln!("running the PyTorch reference ({script}) …");
+    let out = Command::new(python())
+        .arg(repo_root().join("scripts/reference").join(script))
+        .args(args)
+        .stderr(Stdio::inherit())
+        .output()
+        .map_err(|e| {
+            Error::Invalid(format!("starting the PyTorch reference {} (run scripts/setup.sh): {e}", python().display()))
+        })?;
+    if !out.status.success() {
+        return Err(Error::Invalid(format!("the PyTorch reference {script} failed (its messages are above)")));
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| Error::Invalid(format!("reading the JSON of {script}: {e}")))
+}
+
+/// Runs `scripts/<script> ARGS…` (a plotting script) with the project's Python.
+pub fn run_script(script: &str, args: &[&Path]) -> Result<()> {
+    let status = Command::new(python())
+        .arg(repo_root().join("scripts").join(script))
+        .args(args)
+        .status()
+        .map_err(|e| Error::Invalid(format!("starting scripts/{script}: {e}")))?;
+    if !status.success() {
+        return Err(Error::Invalid(format!("scripts/{script} failed (is matplotlib installed? run scripts/setup.sh)")));
+    }
+    Ok(())
+}
+
+/// Writes `doc` to `path` atomically as pretty JSON, its keys in alphabetical order at
+/// every level (it goes through a `serde_json::Value`), as the benchmark files have always
+/// been written: a rerun diffs against the committed figures line by line.
+pub fn write_json(path: &Path, doc: &impl Serialize) -> Result<()> {
+    let text = serde_json::to_value(doc)
+        .and_then(|v| serde_json::to_string_pretty(&v))
+        .map_err(|e| Error::Invalid(format!("{}: {e}", path.display())))?;
+    write_atomic(path, text.as_bytes())
+}
+
+/// A `gdrf-bench` document (losses.json, step-….json): gdrf's timings beside the PyTorch
+/// reference's, per phase; scripts/plot_bench.py draws it.
+#[derive(Serialize)]
+pub struct Timings<S: Serialize> {
+    pub title: String,
+    /// CPU threads, and the device when it is not the CPU.
+    pub machine: String,
+    /// What was measured and how (the step benchmark's settings; none for the losses).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub settings: Option<S>,
+    /// The keys of every run's `median_s`, in the order they are drawn.
+    pub phases: Vec<&'static str>,
+    /// gdrf's run, then the reference's (unless skipped).
+    pub runs: Vec<Run>,
+}
+
+/// One implementation's timings: gdrf's, or what a reference script printed (same keys).
+#[derive(Serialize, Deserialize)]
+pub struct Run {
+    pub implementation: String,
+    pub threads: usize,
+    /// Median seconds per phase.
+    pub median_s: BTreeMap<String, f64>,
+    /// Every timed repetition's seconds per phase.
+    pub samples_s: BTreeMap<String, Vec<f64>>,
+    pub peak_rss_mb: f64,
+    /// Batch size over the median step (the step benchmark).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub images_per_second: Option<f64>,
+    /// Whatever else the script reports (its torch version).
+    #[serde(flatten)]
+    pub other: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Run {
+    /// The median seconds of `phase` (NaN when it has none).
+    pub fn median(&self, phase: &str) -> f64 {
+        self.median_s.get(phase).copied().unwrap_or(f64::NAN)
+    }
+}
+
+/// Runs a PyTorch reference script (as [`run_reference`]) that prints a [`Run`].
+pub fn reference_run(script: &str, args: &[String]) -> Result<Run> {
+    serde_json::from_value(run_reference(script, args)?)
+        .map_err(|e| Error::Invalid(format!("reading the timings of {script}: {e}")))
+}
+
+impl<S: Serialize> Timings<S> {
+    /// Writes `OUT_DIR/<name>.json` atomically and its bar chart `<name>.png`.
+    pub fn write(&self, out_dir: &Path, name: &str) -> Result<()> {
+        std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
+        let json_path = out_dir.join(format!("{name}.json"));
+        write_json(&json_path, self)?;
+        let png = out_dir.join(format!("{name}.png"));
+        run_script("plot_bench.py", &[&json_path, &png])?;
+        println!("wrote {} and {}", json_path.display(), png.display());
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn medians() {
+        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
+        assert!(median(&[]).is_nan());
+    }
+}

@@ -1,0 +1,357 @@
+//! `gdrf-bench step`: full training steps of a training config's stage, gdrf's
+//! [`Trainer::step`] against the PyTorch reference (scripts/reference/bench_step.py) at the
+//! same sizes.
+use super::{median, peak_rss_mb, reference_run, Run, Timings};
+use crate::data::layouts::Layout;
+use crate::data::synth::SynthOptions;
+use crate::data::SplitChoice;
+use crate::disc::DiscConfig;
+use crate::loss::LossConfig;
+use crate::paths::TempDir;
+use crate::train::config::{EmaConfig, OptimConfig, Precision};
+use crate::train::{StepReport, TrainConfig, Trainer};
+use crate::{device, CameraConfig, Error, GeneratorConfig, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The flags of `gdrf-bench step`.
+#[derive(clap::Args)]
+pub struct Options {
+    /// Training config (TOML), e.g. configs/chairs-tiny.toml.
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Batch size (default: the stage's).
+    #[arg(long)]
+    pub batch: Option<i64>,
+    /// Chunks the generator's batch is rendered in (default: the stage's; the
+    /// release's per-GPU step is 4 images in 4 chunks).
+    #[arg(long)]
+    pub batch_split: Option<i64>,
+    /// Index of the config's stage to run (its resolution, samples, batch, split).
+    #[arg(long, default_value_t = 0)]
+    pub stage: usize,
+    /// Timed steps per implementation (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub steps: usize,
+    /// Untimed steps first.
+    #[arg(long, default_value_t = 1)]
+    pub warmup: usize,
+    /// Skip the PyTorch reference (report gdrf alone).
+    #[arg(long)]
+    pub no_reference: bool,
+    /// cpu, cuda or cuda:N; both implementations run there (default: cpu).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// float32 or bfloat16 (gdrf: `precision`; the reference: bfloat16 autocast).
+    /// Default: the config's.
+    #[arg(long)]
+    pub precision: Option<String>,
+    /// Folder for step-<config>-stage<I>-b<batch>[-<device>][-bf16].json and .png.
+    #[arg(long, default_value = "bench")]
+    pub out_dir: PathBuf,
+}
+
+/// What the step benchmark ran: the stage's sizes, the timing protocol and the config's
+/// sections the reference is given.
+#[derive(Serialize)]
+pub struct Settings {
+    pub config: String,
+    pub stage: usize,
+    pub resolution: i64,
+    pub num_steps: usize,
+    pub batch_size: i64,
+    pub batch_split: i64,
+    pub regions: i64,
+    pub warmup_steps: usize,
+    pub timed_steps: usize,
+    pub device: String,
+    /// `float32` or `bfloat16`.
+    pub precision: &'static str,
+    pub timed_steps_r1: &'static str,
+    pub real_images: &'static str,
+    pub g_lr: f64,
+    pub d_lr: f64,
+    pub generator: GeneratorConfig,
+    pub discriminator: DiscConfig,
+    pub loss: LossConfig,
+    pub optim: OptimConfig,
+    pub ema: EmaConfig,
+    pub camera: CameraConfig,
+    /// What the comparison leaves out (the stage's patches, pose distribution, …).
+    pub notes: Vec<String>,
+}
+
+/// Runs gdrf and the reference, prints the table and writes
+/// step-<config>-stage<I>-b<batch>[-<device>][-bf16].json and .png into `--out-dir`.
+pub fn run(a: &Options) -> Result<Timings<Settings>> {
+    let (config, stage, steps, warmup) = (&a.config, a.stage, a.steps, a.warmup);
+    if steps == 0 {
+        return Err(Error::Invalid("--steps must be at least 1".into()));
+    }
+    let tmp = TempDir::new("bench-step")?;
+    let (cfg, notes) = step_config(a, &tmp.0)?;
+    let bf16 = cfg.precision == Precision::Bfloat16;
+    for n in &notes {
+        eprintln!("note: {n}");
+    }
+    let st = cfg.stages[0].clone();
+    let (b, res, n) = (st.batch_size, st.resolution, st.num_steps);
+    let stem = config.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "config".into());
+    let r1 = if cfg.loss.r1_gamma == 0.0 { "R1 off".to_string() } else { "R1 due".to_string() };
+    let precision = if bf16 { "bfloat16" } else { "float32" };
+    let title = format!(
+        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {res}², {n}+{n} samples, {r1}, {} {precision}",
+        st.batch_split, a.device,
+    );
+    eprintln!("{title}\nrunning gdrf ({warmup} warm-up + {steps} timed steps) …");
+    let (g_lr, d_lr) = cfg.learning_rates(0);
+    let settings = Settings {
+        config: config.display().to_string(),
+        stage,
+        resolution: res,
+        num_steps: n,
+        batch_size: b,
+        batch_split: st.batch_split,
+        regions: st.regions,
+        warmup_steps: warmup,
+        timed_steps: steps,
+        device: a.device.clone(),
+        precision,
+        timed_steps_r1: "timed steps run at step indices where R1 is due (multiples of loss.r1_interval)",
+        real_images:
+            "gdrf: a 64-image procedural dataset at the stage's resolution; reference: random images and poses",
+        g_lr,
+        d_lr,
+        generator: cfg.generator.clone(),
+        discriminator: cfg.discriminator.clone(),
+        loss: cfg.loss.clone(),
+        optim: cfg.optim.clone(),
+        ema: cfg.ema.clone(),
+        camera: cfg.camera.clone(),
+        notes,
+    };
+    let mut ref_args = reference_args(&cfg, warmup, steps)?;
+    ref_args.push(format!("--device={}", a.device));
+    if bf16 {
+        ref_args.push("--bf16".into());
+    }
+    let mut runs = vec![measure(cfg, &tmp.0.join("run"), warmup, steps)?];
+    if !a.no_reference {
+        runs.push(reference_run("bench_step.py", &ref_args)?);
+    }
+    let per_second = |r: &Run| r.images_per_second.unwrap_or(f64::NAN);
+    println!("{title}");
+    println!("{:<20}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
+    for r in &runs {
+        println!("{:<20}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
+    }
+    if let [x, y] = &runs[..] {
+        println!(
+            "{:<20}{:>15.2}×{:>11.2}×{:>11.2}×",
+            "reference/gdrf",
+            y.median("step") / x.median("step"),
+            per_second(y) / per_second(x),
+            y.peak_rss_mb / x.peak_rss_mb
+        );
+    }
+    let machine = if a.device == "cpu" {
+        format!("{} CPU threads", runs[0].threads)
+    } else {
+        format!("{}, {} CPU threads", a.device, runs[0].threads)
+    };
+    let doc = Timings { title, machine, settings: Some(settings), phases: vec!["step"], runs };
+    let mut name = format!("step-{stem}-stage{stage}-b{b}");
+    if a.device != "cpu" {
+        name += &format!("-{}", a.device.replace(':', ""));
+    }
+    if bf16 {
+        name += "-bf16";
+    }
+    doc.write(&a.out_dir, &name)?;
+    Ok(doc)
+}
+
+/// The config of `gdrf-bench step`: stage `--stage` of the file as the only stage (batch
+/// overridden), on `--device` and `--precision`, never sampling or rolling back, training
+/// on a small procedural dataset under `tmp`. Also returns notes on what the comparison
+/// leaves out.
+fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
+    let (path, stage, batch, split) = (&a.config, a.stage, a.batch, a.batch_split);
+    let mut cfg = TrainConfig::load(path)?;
+    if let Some(p) = &a.precision {
+        cfg.precision = match p.as_str() {
+            "float32" => Precision::Float32,
+            "bfloat16" => Precision::Bfloat16,
+            other => return Err(Error::Invalid(format!("--precision {other}: expected float32 or bfloat16"))),
+        };
+    }
+    let n = cfg.stages.len();
+    if stage >= n {
+        return Err(Error::Invalid(format!("--stage {stage}: {} has {n} stage(s), numbered from 0", path.display())));
+    }
+    let mut notes = Vec::new();
+    let mut st = cfg.stages[stage].clone();
+    st.from_step = 0;
+    if let Some(b) = batch {
+        if b < 1 {
+            return Err(Error::Invalid("--batch must be at least 1".into()));
+        }
+        st.batch_size = b;
+    }
+    if let Some(k) = split {
+        if k < 1 || st.batch_size % k != 0 {
+            return Err(Error::Invalid(format!("--batch-split {k} must divide the batch {}", st.batch_size)));
+        }
+        st.batch_split = k;
+    } else if batch.is_some() {
+        let b = st.batch_size;
+        if b % st.batch_split != 0 {
+            notes.push(format!("batch_split {} does not divide --batch {b}: using batch_split 1", st.batch_split));
+            st.batch_split = 1;
+        }
+    }
+    if st.regions > 1 {
+        notes.push(format!(
+            "gdrf runs the two-pass patch step ({} regions); the reference renders whole images",
+            st.regions
+        ));
+    }
+    if cfg.camera.distribution != crate::PoseDistribution::Uniform {
+        notes.push(format!("poses: gdrf draws {:?}, the reference uniform", cfg.camera.distribution));
+    }
+    if !cfg.render.hierarchical {
+        notes.push("render.hierarchical is off; the reference always adds importance samples".into());
+    }
+    if cfg.generator.deform_scale != 1.0 {
+        notes.push(format!(
+            "generator.deform_scale {} is not modelled by the reference (1)",
+            cfg.generator.deform_scale
+        ));
+    }
+    if cfg.loss.latent_weight != 0.0 {
+        notes.push("loss.latent_weight is not 0; the reference has no latent loss".into());
+    }
+    let resolution = st.resolution as usize;
+    cfg.stages = vec![st];
+    cfg.device = a.device.clone();
+    cfg.schedule.total_steps = i64::MAX / 2;
+    cfg.schedule.sample_interval = 0;
+    cfg.debug = Default::default();
+    // No checkpoint to go back to: a non-finite step is reported, never rolled back.
+    cfg.guard.rollback_after = i64::MAX;
+    let synth = cfg.data.synth.clone().unwrap_or_default();
+    cfg.data.path = tmp.join("data");
+    cfg.data.layout = Layout::Auto;
+    cfg.data.poses = None;
+    cfg.data.require_poses = true;
+    cfg.data.skip_bad = false;
+    cfg.data.split = SplitChoice::Train;
+    cfg.data.cache = false;
+    cfg.data.cache_dir = None;
+    cfg.data.synth =
+        Some(SynthOptions { count: 64, resolution, supersample: 1, shadows: false, held_out_fraction: 0.0, ..synth });
+    cfg.validate()?;
+    Ok((cfg, notes))
+}
+
+/// `warmup` untimed then `steps` timed training steps of gdrf. Timed steps run at step
+/// indices where R1 is due (the counter is moved up to the next multiple of
+/// `r1_interval`; a single stage has no fade-in, so nothing else depends on it).
+fn measure(cfg: TrainConfig, run_dir: &Path, warmup: usize, steps: usize) -> Result<Run> {
+    let threads = device::init_threads();
+    let mut trainer = Trainer::new(cfg, run_dir)?;
+    let t0 = Instant::now();
+    trainer.prepare_data(&|| {})?;
+    let res = trainer.cfg.stages[0].resolution;
+    let n = trainer.dataset(res)?.len();
+    eprintln!("procedural dataset: {n} images at {res}² ({:.1} s)", t0.elapsed().as_secs_f64());
+    let report = |r: &StepReport, what: &str| {
+        let bad = if r.d_skipped || r.g_skipped { " (non-finite: update skipped)" } else { "" };
+        eprintln!("gdrf {what} {}: {:.2} s{bad}", r.step, r.seconds);
+    };
+    for _ in 0..warmup {
+        report(&trainer.step()?, "warm-up step");
+    }
+    let every = trainer.cfg.loss.r1_interval.max(1);
+    let mut samples = Vec::with_capacity(steps);
+    for _ in 0..steps {
+        let s = trainer.progress.step;
+        trainer.progress.step = (s + every - 1) / every * every;
+        let r = trainer.step()?;
+        report(&r, "step");
+        samples.push(r.seconds);
+    }
+    let b = trainer.cfg.stages[0].batch_size as f64;
+    let med = median(&samples);
+    Ok(Run {
+        implementation: "gdrf (tch)".into(),
+        threads,
+        median_s: [("step".to_string(), med)].into(),
+        samples_s: [("step".to_string(), samples)].into(),
+        peak_rss_mb: peak_rss_mb(),
+        images_per_second: Some(b / med),
+        other: Default::default(),
+    })
+}
+
+/// The reference's flags for the same step (scripts/reference/bench_step.py).
+fn reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result<Vec<String>> {
+    let st = &cfg.stages[0];
+    let (g_lr, d_lr) = cfg.learning_rates(0);
+    let (g, l, o, c) = (&cfg.generator, &cfg.loss, &cfg.optim, &cfg.camera);
+    let list = |v: &[String]| v.join(",");
+    let variant = serde_json::to_value(l.reg.variant)
+        .map_err(|e| Error::Invalid(e.to_string()))?
+        .as_str()
+        .unwrap_or("release")
+        .to_string();
+    let mut a: Vec<(&str, String)> = vec![
+        ("resolution", st.resolution.to_string()),
+        ("num-steps", st.num_steps.to_string()),
+        ("batch", st.batch_size.to_string()),
+        ("batch-split", st.batch_split.to_string()),
+        ("latent-dim", g.latent_dim.to_string()),
+        ("hidden-dim", g.hidden_dim.to_string()),
+        ("mapping-hidden-dim", g.mapping_hidden_dim.to_string()),
+        ("trunk-layers", g.trunk_layers.to_string()),
+        ("color-layers", g.colour_layers.to_string()),
+        ("deform-layers", g.deform_layers.to_string()),
+        ("correct-scale", g.correct_scale.to_string()),
+        ("disc-channels", list(&cfg.discriminator.channels.iter().map(|c| c.to_string()).collect::<Vec<_>>())),
+        ("r1-gamma", l.r1_gamma.to_string()),
+        ("r1-interval", l.r1_interval.to_string()),
+        ("pose-weight", l.pose_weight.to_string()),
+        (
+            "reg-weights",
+            list(&[l.reg.correction, l.reg.smoothness, l.reg.rigidity, l.reg.normal].map(|w| w.to_string())),
+        ),
+        ("reg-variant", variant),
+        ("reg-ray-ratio", l.reg.ray_ratio.to_string()),
+        ("reg-near-ratio", l.reg.near_ratio.to_string()),
+        ("reg-sample-ratio", l.reg.sample_ratio.to_string()),
+        ("topk-interval", l.topk_interval.to_string()),
+        ("topk-floor", l.topk_floor.to_string()),
+        ("g-lr", g_lr.to_string()),
+        ("d-lr", d_lr.to_string()),
+        ("betas", list(&[o.beta1.to_string(), o.beta2.to_string()])),
+        ("adam-eps", o.eps.to_string()),
+        ("grad-clip", o.grad_clip.to_string()),
+        ("ema-decay", cfg.ema.decay.to_string()),
+        ("fov", c.fov_deg.to_string()),
+        ("ray-start", c.ray_start.to_string()),
+        ("ray-end", c.ray_end.to_string()),
+        ("h-mean", c.h_mean.to_string()),
+        ("h-std", c.h_std.to_string()),
+        ("v-mean", c.v_mean.to_string()),
+        ("v-std", c.v_std.to_string()),
+        ("warmup", warmup.to_string()),
+        ("steps", steps.to_string()),
+        ("seed", cfg.seed.to_string()),
+    ];
+    if !cfg.ema.warmup {
+        a.push(("no-ema-warmup", String::new()));
+    }
+    // --key=value, so that negative numbers are not taken for options.
+    Ok(a.into_iter().map(|(k, v)| if v.is_empty() { format!("--{k}") } else { format!("--{k}={v}") }).collect())
+}

@@ -1,0 +1,473 @@
+//! The commands of gdrf-invert: `gdrf-invert PHOTO` (a photo into shape and appearance
+//! features, [`run`]) and `gdrf-invert train-init` (the initialiser, [`train_init`]),
+//! their flags and progress bars (the `cli` feature).
+use super::init::{self as init_stage, InitConfig, Initialiser};
+use super::photo::{load_photo, Fit};
+use super::{
+    invert, load_effnet, loss_panels, parse_pose_degrees, render_orbit, render_views, start_for_photo, InvertConfig,
+    Perceptual, PhotoStart, PoseFrom, StepLog,
+};
+use crate::checkpoint::load_generator;
+use crate::config::CameraPreset;
+use crate::edit::generator_id;
+use crate::error::Context;
+use crate::eval::fidelity::psnr_all;
+use crate::io::{save_gif, save_png, to_rgb8};
+use crate::plot::draw_panels;
+use crate::pretrained::lpips::{Lpips, LpipsNet};
+use crate::{device, Error, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use tch::{Kind, Tensor};
+
+/// The flags of `gdrf-invert train-init`.
+#[derive(clap::Args)]
+pub struct TrainInitOptions {
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
+    #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
+    pub generator: Option<PathBuf>,
+    /// The initialiser file to write.
+    #[arg(long, short, default_value = "initialiser.safetensors")]
+    pub out: PathBuf,
+    /// Continue the training saved in --out.
+    #[arg(long)]
+    pub resume: bool,
+    /// Generated training tuples (the last --held-out are for validation).
+    #[arg(long, default_value_t = InitConfig::default().count)]
+    pub count: i64,
+    #[arg(long, default_value_t = InitConfig::default().held_out)]
+    pub held_out: i64,
+    /// Side of the generated images and of F's input.
+    #[arg(long, default_value_t = InitConfig::default().resolution)]
+    pub resolution: i64,
+    /// Samples per ray of the generated images.
+    #[arg(long, default_value_t = InitConfig::default().samples)]
+    pub samples: usize,
+    #[arg(long, default_value_t = InitConfig::default().steps)]
+    pub steps: i64,
+    #[arg(long, default_value_t = InitConfig::default().batch_size)]
+    pub batch_size: i64,
+    #[arg(long, default_value_t = InitConfig::default().lr)]
+    pub lr: f64,
+    #[arg(long, default_value_t = InitConfig::default().pose_weight)]
+    pub pose_weight: f64,
+    /// Weight of the paper's re-rendering term (renders every batch again with gradients).
+    #[arg(long, default_value_t = InitConfig::default().image_weight)]
+    pub image_weight: f64,
+    #[arg(long, default_value_t = InitConfig::default().eval_interval)]
+    pub eval_interval: i64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    pub device: String,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// The flags of `gdrf-invert PHOTO`.
+#[derive(clap::Args)]
+pub struct Options {
+    /// The photo: PNG or JPEG, any size (non-square ones are centre-cropped, or padded
+    /// with --fit pad), RGBA composited on white.
+    #[arg(required = true)]
+    pub photo: Option<PathBuf>,
+    /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
+    #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
+    pub generator: Option<PathBuf>,
+    /// The initialiser (from `gdrf-invert train-init`): w_s starts at its prediction, and
+    /// its pose is used when --pose is not given. Without it, w_s starts at the mean code's.
+    #[arg(long, value_name = "FILE")]
+    pub init: Option<PathBuf>,
+    /// Camera pose of the photo as PITCH,YAW in degrees (pitch from the +y axis, as
+    /// gdrf-edit's --pitch/--yaw). Default: the camera's mean pose.
+    #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
+    pub pose: Option<String>,
+    /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
+    /// camera stored with the generator, as gdrf-edit's --camera.
+    #[arg(long, value_enum)]
+    pub camera: Option<CameraPreset>,
+    /// A mask image of the photo's size: black pixels become background (white).
+    #[arg(long, value_name = "FILE")]
+    pub mask: Option<PathBuf>,
+    /// How a non-square photo becomes square: crop (centre square) or pad (white borders).
+    #[arg(long, default_value = "crop")]
+    pub fit: Fit,
+    /// Optimisation steps at most (the paper: 2 000).
+    #[arg(long, default_value_t = InvertConfig::default().steps)]
+    pub steps: usize,
+    /// Adam's learning rate.
+    #[arg(long, default_value_t = InvertConfig::default().lr)]
+    pub lr: f64,
+    /// Side of the renders compared with the photo. Default: the resolution the generator
+    /// was last trained at, as its header records (32 for the shipped models), else 64.
+    #[arg(long)]
+    pub resolution: Option<i64>,
+    /// Coarse samples per ray during the optimisation (the importance pass adds as many).
+    /// Default: those of the generator's last training step, as its header records (12 for
+    /// the shipped models), else 24.
+    #[arg(long)]
+    pub samples: Option<usize>,
+    /// Perceptual term: effnet (EfficientNet-Lite0 distance, offline default), lpips-vgg or
+    /// lpips-alex (real LPIPS; needs --lpips-backbone), or none.
+    #[arg(long, default_value = "effnet", value_parser = ["effnet", "lpips-vgg", "lpips-alex", "none"])]
+    pub perceptual: String,
+    /// The LPIPS backbone file (scripts/export_lpips_backbone.py writes it).
+    #[arg(long, value_name = "FILE")]
+    pub lpips_backbone: Option<PathBuf>,
+    /// Weights of the loss terms.
+    #[arg(long, default_value_t = InvertConfig::default().mse_weight)]
+    pub mse_weight: f64,
+    #[arg(long, default_value_t = InvertConfig::default().perceptual_weight)]
+    pub perceptual_weight: f64,
+    #[arg(long, default_value_t = InvertConfig::default().prior_shape)]
+    pub prior_shape: f64,
+    #[arg(long, default_value_t = InvertConfig::default().prior_appearance)]
+    pub prior_appearance: f64,
+    /// Fraction of the rays whose gradients are taken each step (1 = all).
+    #[arg(long, default_value_t = InvertConfig::default().ray_fraction)]
+    pub ray_fraction: f64,
+    /// Fraction of the steps, from the start, compared at half resolution.
+    #[arg(long, default_value_t = InvertConfig::default().coarse_fraction)]
+    pub coarse_fraction: f64,
+    /// Stop after this many steps without a relative improvement of 1e-3 (0 = never).
+    #[arg(long, default_value_t = InvertConfig::default().patience)]
+    pub patience: usize,
+    /// Run the generator's hidden layers in bfloat16 (integration and the features stay
+    /// float32): faster on GPUs and on CPUs with bfloat16 instructions (AVX512-BF16, AMX),
+    /// slower elsewhere. See `gdrf-invert bench`.
+    #[arg(long)]
+    pub bf16: bool,
+    /// Optimise the camera pose along with the features, starting from --pose (or the
+    /// initialiser's prediction, or the camera's mean pose).
+    #[arg(long)]
+    pub refine_pose: bool,
+    /// Adam's learning rate of the refined pose, in degrees per step.
+    #[arg(long, default_value_t = InvertConfig::default().pose_lr.to_degrees())]
+    pub pose_lr: f64,
+    /// Sample each ray only between its first and last cell of an occupancy grid of the
+    /// current shape with this many cells per side (0 = off), rebuilt every
+    /// --grid-refresh steps. Off by default: on the shipped model the grid at the
+    /// default threshold covers nearly every ray (see docs/inversion.md).
+    #[arg(long, default_value_t = InvertConfig::default().grid)]
+    pub grid: i64,
+    /// Steps between rebuilds of the occupancy grid (--grid).
+    #[arg(long, default_value_t = InvertConfig::default().grid_refresh)]
+    pub grid_refresh: usize,
+    /// Density softplus(σ) under which a grid cell counts as empty (--grid).
+    #[arg(long, default_value_t = InvertConfig::default().grid_threshold)]
+    pub grid_threshold: f64,
+    /// Views of the novel-view orbit (turntable at the photo's pitch); 0 = none.
+    #[arg(long, default_value_t = 24)]
+    pub orbit: usize,
+    /// Side of the orbit's and the reconstruction's renders (default: --resolution).
+    #[arg(long)]
+    pub render_resolution: Option<i64>,
+    /// Seed of the renderer noise and ray subsets.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// auto, cpu, cuda or cuda:N.
+    #[arg(long, default_value = "auto")]
+    pub device: String,
+    /// Output folder.
+    #[arg(long, short, default_value = "inversion")]
+    pub out: PathBuf,
+    /// Write into a folder that already holds files.
+    #[arg(long)]
+    pub force: bool,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Inverts the photo and writes into `--out` what the command's help lists (features,
+/// images, orbit, loss plot, invert.json).
+pub fn run(a: &Options) -> Result<()> {
+    let photo_path = a.photo.clone().expect("clap requires the photo");
+    if !(a.pose_lr > 0.0 && a.pose_lr.is_finite()) {
+        return Err(Error::Invalid(format!("--pose-lr {}: expected a positive number of degrees per step", a.pose_lr)));
+    }
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    let learned = InvertConfig::where_learned(&m.header);
+    let (resolution, samples) = (a.resolution.unwrap_or(learned.resolution), a.samples.unwrap_or(learned.samples));
+    let said = if a.resolution.is_none() && m.header.trained_resolution().is_some() {
+        " (where the generator learned)"
+    } else {
+        ""
+    };
+    let cfg = InvertConfig {
+        steps: a.steps,
+        lr: a.lr,
+        resolution,
+        samples,
+        mse_weight: a.mse_weight,
+        perceptual_weight: if a.perceptual == "none" { 0.0 } else { a.perceptual_weight },
+        prior_shape: a.prior_shape,
+        prior_appearance: a.prior_appearance,
+        ray_fraction: a.ray_fraction,
+        coarse_fraction: a.coarse_fraction,
+        patience: a.patience,
+        seed: a.seed,
+        bf16: a.bf16,
+        refine_pose: a.refine_pose,
+        pose_lr: a.pose_lr.to_radians(),
+        grid: a.grid,
+        grid_refresh: a.grid_refresh,
+        grid_threshold: a.grid_threshold,
+        ..Default::default()
+    };
+    cfg.validate()?;
+    let view_res = a.render_resolution.unwrap_or(resolution);
+    if !(4..=1024).contains(&view_res) {
+        return Err(Error::Invalid(format!("--render-resolution {view_res}: expected 4 to 1024")));
+    }
+    let pose = a.pose.as_deref().map(|p| parse_pose_degrees(p, "--pose")).transpose()?;
+    let cam = match &a.camera {
+        Some(preset) => preset.camera(),
+        None => m.header.camera.clone().unwrap_or_default(),
+    };
+    let g = &m.generator;
+    let id = generator_id(&m.vs, g);
+    // Read the photo before anything is written, so a bad one leaves no folder behind.
+    let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, resolution, dev)?;
+    let init = a
+        .init
+        .as_deref()
+        .map(|p| Initialiser::load(p, &id, dev).with_context(|| format!("loading --init {}", p.display())))
+        .transpose()?;
+    crate::io::output_dir(&a.out, a.force, "--out")?;
+
+    let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, init.as_ref())?;
+    let pose = start.pose;
+    if let Some(p) = predicted_pose {
+        eprintln!("the initialiser's pose: pitch {:.1}°, yaw {:.1}°", p.0.to_degrees(), p.1.to_degrees());
+    }
+    if pose_from == PoseFrom::CameraMean {
+        eprintln!(
+            "no --pose: using the camera's mean pose (pitch {:.1}°, yaw {:.1}°)",
+            pose.0.to_degrees(),
+            pose.1.to_degrees()
+        );
+    }
+    if init.is_none() {
+        eprintln!("no --init: w_s starts at the mean code's (gdrf-invert train-init trains an initialiser)");
+    }
+    let effnet;
+    let lpips;
+    let perc = match a.perceptual.as_str() {
+        "none" => None,
+        "effnet" => {
+            effnet = load_effnet(dev)?;
+            Some(Perceptual::effnet(&effnet))
+        }
+        name => {
+            let net = if name == "lpips-vgg" { LpipsNet::Vgg16 } else { LpipsNet::Alex };
+            let Some(backbone) = &a.lpips_backbone else {
+                return Err(Error::Invalid(format!(
+                    "--perceptual {name} needs --lpips-backbone FILE (scripts/export_lpips_backbone.py writes it)"
+                )));
+            };
+            let heads = crate::paths::repo_root().join(format!("weights/lpips-{}-heads.safetensors", net.name()));
+            lpips = Lpips::load(net, backbone, &heads, dev)?;
+            Some(Perceptual {
+                name: format!("LPIPS ({})", net.name()),
+                distance: Box::new(|x, y| lpips.distance(x, y)),
+            })
+        }
+    };
+    let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
+    eprintln!(
+        "inverting {} at {}²{said} with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        photo_path.display(),
+        resolution,
+        samples,
+        samples,
+        a.steps
+    );
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
+            .expect("valid template"),
+    );
+    let inv = invert(g, &cam, &photo, &start, &cfg, perc.as_ref(), &mut |l: &StepLog| {
+        bar.set_position(l.step as u64 + 1);
+        bar.set_message(format!("loss {:.4} (mse {:.4}, perceptual {:.4})", l.loss, l.mse, l.perceptual));
+    })?;
+    bar.finish_and_clear();
+    let seconds = inv.history.last().map(|l| l.seconds).unwrap_or(0.0);
+    // The pose the features were fitted at (refined, with --refine-pose).
+    let start_pose = pose;
+    let pose = inv.features.pose.unwrap_or(pose);
+    if cfg.refine_pose {
+        eprintln!(
+            "refined pose: pitch {:.1}°, yaw {:.1}° (from {:.1}°, {:.1}°)",
+            pose.0.to_degrees(),
+            pose.1.to_degrees(),
+            start_pose.0.to_degrees(),
+            start_pose.1.to_degrees()
+        );
+    }
+
+    // Outputs.
+    inv.features.save(&a.out.join("features.safetensors"), &id)?;
+    let view_samples = samples.max(12);
+    let view =
+        |f: &crate::edit::Features, poses: &[(f64, f64)]| render_views(g, &cam, f, poses, view_res, view_samples);
+    let recon = view(&inv.features, &[pose])?;
+    let start_features = crate::edit::Features {
+        w_s: start.w_s.shallow_clone(),
+        appearance: crate::nn::film::Film::from_raw(&start.appearance_raw),
+        pose: Some(start_pose),
+        z: None,
+    };
+    let start_img = view(&start_features, &[start_pose])?;
+    let input = crate::io::resize(&photo, view_res);
+    save_png(&a.out.join("input.png"), &to_rgb8(&input.get(0), false)?)?;
+    save_png(&a.out.join("reconstruction.png"), &to_rgb8(&recon.get(0), false)?)?;
+    let compare = Tensor::cat(&[input.get(0), start_img.get(0), recon.get(0)], 2);
+    save_png(&a.out.join("compare.png"), &to_rgb8(&compare, false)?)?;
+    let psnr = psnr_all(&recon, &input)?;
+    if a.orbit > 0 {
+        let views = render_orbit(g, &cam, &inv.features, pose, a.orbit, view_res, view_samples)?;
+        let dir = a.out.join("orbit");
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let frames = (0..a.orbit as i64).map(|i| to_rgb8(&views.get(i), false)).collect::<Result<Vec<_>>>()?;
+        for (i, f) in frames.iter().enumerate() {
+            save_png(&dir.join(format!("frame-{i:03}.png")), f)?;
+        }
+        save_gif(&a.out.join("orbit.gif"), &frames, 80)?;
+    }
+    save_png(&a.out.join("loss.png"), &draw_panels(&loss_panels(&inv.history), 2, 360, 240))?;
+    let report = serde_json::json!({
+        "photo": photo_path.display().to_string(),
+        "init": a.init.as_ref().map(|p| p.display().to_string()),
+        "generator": gen_path.display().to_string(),
+        "generator_id": id,
+        "camera": cam,
+        "pose_deg": [pose.0.to_degrees(), pose.1.to_degrees()],
+        "start_pose_deg": [start_pose.0.to_degrees(), start_pose.1.to_degrees()],
+        "refine_pose": cfg.refine_pose,
+        "perceptual": perc_name,
+        "config": cfg,
+        "steps_run": inv.history.len(),
+        "stopped_early": inv.stopped_early,
+        "seconds": seconds,
+        "reconstruction_psnr_db": psnr,
+        "device": format!("{dev:?}"),
+        "threads": threads,
+        "history": inv.history,
+    });
+    crate::paths::write_atomic(&a.out.join("invert.json"), json(&report)?.as_bytes())?;
+    println!(
+        "{} steps in {seconds:.1} s{}; reconstruction PSNR {psnr:.2} dB at {view_res}²; wrote {}/features.safetensors, reconstruction.png, compare.png{}, loss.png, invert.json",
+        inv.history.len(),
+        if inv.stopped_early { " (stopped early)" } else { "" },
+        a.out.display(),
+        if a.orbit > 0 { ", orbit.gif" } else { "" }
+    );
+    Ok(())
+}
+
+/// Trains the initialiser and writes `--out` and `--out`.json.
+pub fn train_init(a: &TrainInitOptions) -> Result<()> {
+    let threads = device::init_threads();
+    let dev = device::select(&a.device)?;
+    let cfg = InitConfig {
+        resolution: a.resolution,
+        samples: a.samples,
+        count: a.count,
+        held_out: a.held_out,
+        batch_size: a.batch_size,
+        steps: a.steps,
+        lr: a.lr,
+        pose_weight: a.pose_weight,
+        image_weight: a.image_weight,
+        eval_interval: a.eval_interval,
+        seed: a.seed,
+        ..Default::default()
+    };
+    cfg.validate()?;
+    if a.resume && !a.out.is_file() {
+        return Err(Error::Invalid(format!("--resume: {} does not exist", a.out.display())));
+    }
+    if !a.resume && a.out.exists() {
+        return Err(Error::Invalid(format!(
+            "--out {} exists; pass --resume to continue it or choose another file",
+            a.out.display()
+        )));
+    }
+    let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
+    let id = generator_id(&m.vs, g);
+    eprintln!(
+        "training a ResNet-34 initialiser for {} on {} generated {}² images ({} held out), {} steps of {}; device {dev:?}, {threads} threads",
+        gen_path.display(),
+        cfg.count,
+        cfg.resolution,
+        cfg.held_out,
+        cfg.steps,
+        cfg.batch_size
+    );
+    let style = ProgressStyle::with_template("{msg:12} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
+        .expect("valid template");
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.count as u64) };
+    bar.set_style(style.clone());
+    bar.set_message("rendering");
+    let t0 = std::time::Instant::now();
+    let tuples = init_stage::generate(g, &cam, &cfg, &mut |d| bar.set_position(d as u64))?;
+    bar.finish_and_clear();
+    let generate_s = t0.elapsed().as_secs_f64();
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
+    bar.set_style(style);
+    bar.set_message("training");
+    let t1 = std::time::Instant::now();
+    let (_, evals) = init_stage::train(g, &cam, &id, &tuples, &cfg, &a.out, a.resume, &mut |step, ev| {
+        bar.set_position(step as u64);
+        if let Some(e) = ev {
+            // Above the bar, and in logs too (a hidden bar's println writes nothing).
+            bar.suspend(|| {
+                eprintln!(
+                    "step {}: held-out w_s MSE {:.4} (mean code {:.4}), pitch error {:.1}°, yaw error {:.1}°",
+                    e.step, e.w_mse, e.mean_code_w_mse, e.pitch_error_deg, e.yaw_error_deg
+                )
+            });
+        }
+    })?;
+    bar.finish_and_clear();
+    let train_s = t1.elapsed().as_secs_f64();
+    let last = evals.last().expect("at least one evaluation");
+    let report = serde_json::json!({
+        "generator": gen_path.display().to_string(),
+        "generator_id": id,
+        "config": cfg,
+        "generate_seconds": generate_s,
+        "train_seconds": train_s,
+        "device": format!("{dev:?}"),
+        "threads": threads,
+        "evaluations": evals,
+    });
+    let json_path = PathBuf::from(format!("{}.json", a.out.display()));
+    crate::paths::write_atomic(&json_path, json(&report)?.as_bytes())?;
+    println!(
+        "held-out w_s MSE {:.4} against the mean code's {:.4}; pose error pitch {:.1}°, yaw {:.1}°; rendering {generate_s:.0} s, training {train_s:.0} s; wrote {} and {}",
+        last.w_mse,
+        last.mean_code_w_mse,
+        last.pitch_error_deg,
+        last.yaw_error_deg,
+        a.out.display(),
+        json_path.display()
+    );
+    Ok(())
+}
+
+/// `report` as the pretty JSON of invert.json and the initialiser's .json.
+fn json(report: &serde_json::Value) -> Result<String> {
+    serde_json::to_string_pretty(report).map_err(|e| Error::Invalid(e.to_string()))
+}
