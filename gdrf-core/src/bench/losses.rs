@@ -129,7 +129,7 @@ fn measure(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> Result
             let t0 = Instant::now();
             let z = Tensor::randn([chunk, latent], (Kind::Float, tch::Device::Cpu));
             let poses = Poses::sample(&camera, chunk, Kind::Float, tch::Device::Cpu);
-            let lat = gen.latents(&z, &z, None);
+            let lat = gen.latents(&z, &z, None)?;
             let noise = Noise::default();
             let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
             let loss = generator_pass(&renderer, &disc, &fake, None, at, &cfg)?;
@@ -146,7 +146,7 @@ fn measure(b: i64, split: i64, res: i64, steps: usize, repeats: usize) -> Result
         let t0 = Instant::now();
         let z = Tensor::randn([b, latent], (Kind::Float, tch::Device::Cpu));
         let poses = Poses::sample(&camera, b, Kind::Float, tch::Device::Cpu);
-        let lat = tch::no_grad(|| gen.latents(&z, &z, None));
+        let lat = tch::no_grad(|| gen.latents(&z, &z, None))?;
         let noise = Noise::default();
         let fake = FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
         let real = Tensor::rand([b, 3, res, res], (Kind::Float, tch::Device::Cpu)) * 2.0 - 1.0;

@@ -47,29 +47,29 @@ pub fn peak_rss_mb() -> f64 {
 /// prints (its progress messages go to our stderr).
 pub fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value> {
     eprintln!("running the PyTorch reference ({script}) …");
+    let reference = |reason: String| Error::Subprocess { program: format!("the PyTorch reference {script}"), reason };
     let out = Command::new(python())
         .arg(repo_root().join("scripts/reference").join(script))
         .args(args)
         .stderr(Stdio::inherit())
         .output()
-        .map_err(|e| {
-            Error::Invalid(format!("starting the PyTorch reference {} (run scripts/setup.sh): {e}", python().display()))
-        })?;
+        .map_err(|e| reference(format!("could not start {} (run scripts/setup.sh): {e}", python().display())))?;
     if !out.status.success() {
-        return Err(Error::Invalid(format!("the PyTorch reference {script} failed (its messages are above)")));
+        return Err(reference("failed (its messages are above)".into()));
     }
-    serde_json::from_slice(&out.stdout).map_err(|e| Error::Invalid(format!("reading the JSON of {script}: {e}")))
+    serde_json::from_slice(&out.stdout).map_err(|e| reference(format!("printed no JSON: {e}")))
 }
 
 /// Runs `scripts/<script> ARGS…` (a plotting script) with the project's Python.
 pub fn run_script(script: &str, args: &[&Path]) -> Result<()> {
+    let plot = |reason: String| Error::Subprocess { program: format!("scripts/{script}"), reason };
     let status = Command::new(python())
         .arg(repo_root().join("scripts").join(script))
         .args(args)
         .status()
-        .map_err(|e| Error::Invalid(format!("starting scripts/{script}: {e}")))?;
+        .map_err(|e| plot(format!("could not start: {e}")))?;
     if !status.success() {
-        return Err(Error::Invalid(format!("scripts/{script} failed (is matplotlib installed? run scripts/setup.sh)")));
+        return Err(plot("failed (is matplotlib installed? run scripts/setup.sh)".into()));
     }
     Ok(())
 }
@@ -78,9 +78,7 @@ pub fn run_script(script: &str, args: &[&Path]) -> Result<()> {
 /// every level (it goes through a `serde_json::Value`), as the benchmark files have always
 /// been written: a rerun diffs against the committed figures line by line.
 pub fn write_json(path: &Path, doc: &impl Serialize) -> Result<()> {
-    let text = serde_json::to_value(doc)
-        .and_then(|v| serde_json::to_string_pretty(&v))
-        .map_err(|e| Error::Invalid(format!("{}: {e}", path.display())))?;
+    let text = serde_json::to_value(doc).and_then(|v| serde_json::to_string_pretty(&v))?;
     write_atomic(path, text.as_bytes())
 }
 
@@ -127,8 +125,10 @@ impl Run {
 
 /// Runs a PyTorch reference script (as [`run_reference`]) that prints a [`Run`].
 pub fn reference_run(script: &str, args: &[String]) -> Result<Run> {
-    serde_json::from_value(run_reference(script, args)?)
-        .map_err(|e| Error::Invalid(format!("reading the timings of {script}: {e}")))
+    serde_json::from_value(run_reference(script, args)?).map_err(|e| Error::Subprocess {
+        program: format!("the PyTorch reference {script}"),
+        reason: format!("printed no timings: {e}"),
+    })
 }
 
 impl<S: Serialize> Timings<S> {

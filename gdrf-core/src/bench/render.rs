@@ -275,7 +275,7 @@ pub fn run(a: &Options) -> Result<Report> {
                 let z = seeded_randn(&[1, latent], s).to_device(dev);
                 tch::no_grad(|| loaded.generator.latents(&z, &z, None))
             })
-            .collect(),
+            .collect::<Result<_>>()?,
     };
     let objects: Vec<AnalyticField> = a
         .seeds
