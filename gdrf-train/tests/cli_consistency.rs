@@ -1,5 +1,6 @@
 //! The three binaries speak one language: `--device` takes the same values everywhere,
-//! `--camera` the same presets, every angle is in degrees, and a usage error exits 2 while
+//! `--camera` the same presets, the renderer's noise is seeded by `--noise-seed`, every
+//! angle is in degrees, and a usage error exits 2 while
 //! a runtime error exits 1 naming the bad file.
 use std::path::PathBuf;
 use std::process::{Command, Output};
@@ -58,11 +59,24 @@ fn device_camera_and_angles_read_the_same_in_every_binary() {
         if let Some(camera) = flag_help(&h, "--camera <CAMERA>") {
             assert!(camera.contains("[possible values: chair, car, carla]"), "{name} {sub:?} --camera: {camera}");
         }
+        // The seed of the renderer's noise has one name; `--seed`/`--seeds` are codes or
+        // whole runs, never the noise.
+        for seed in ["--seed <SEED>", "--seeds <SEEDS>"] {
+            if let Some(text) = flag_help(&h, seed) {
+                assert!(!text.contains("noise"), "{name} {sub:?} {seed} seeds the noise: {text}");
+            }
+        }
         for angle in ["--pitch <PITCH>", "--yaw <YAW>", "--pose <PITCH,YAW>", "--photo-pose <PITCH,YAW>"] {
             if let Some(text) = flag_help(&h, angle) {
                 assert!(text.contains("degrees"), "{name} {sub:?} {angle}: {text}");
             }
         }
+    }
+    for (name, sub) in [("gdrf-invert", &[][..]), ("gdrf-edit", &["swap"][..]), ("gdrf-edit", &["interp"][..])] {
+        let h = help(name, sub);
+        let noise =
+            flag_help(&h, "--noise-seed <NOISE_SEED>").unwrap_or_else(|| panic!("{name} {sub:?}: no --noise-seed"));
+        assert!(noise.contains("noise"), "{name} {sub:?} --noise-seed: {noise}");
     }
 }
 

@@ -117,8 +117,8 @@ impl ViewFlags {
 pub struct ViewArgs {
     #[cfg_attr(feature = "cli", command(flatten))]
     pub flags: ViewFlags,
-    /// Seed of the stratified jitter and importance uniforms; every image of a view uses the
-    /// same ones, so images differ only by what was edited.
+    /// Seed of the renderer noise (the stratified jitter and importance uniforms); every
+    /// image of a view uses the same ones, so images differ only by what was edited.
     #[cfg_attr(feature = "cli", arg(long, default_value_t = 0))]
     pub noise_seed: u64,
     /// `release`: the authors' render script — N = 96, ψ = 0.7, last sample painted white

@@ -56,7 +56,9 @@ pub struct TrainInitOptions {
     pub image_weight: f64,
     #[arg(long, default_value_t = InitConfig::default().eval_interval)]
     pub eval_interval: i64,
-    #[arg(long, default_value_t = 0)]
+    /// Seed of the initialiser's training: its rendered codes and poses, its initial weights
+    /// and its batches.
+    #[arg(long, default_value_t = InitConfig::default().seed)]
     pub seed: u64,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
@@ -164,9 +166,10 @@ pub struct Options {
     /// Side of the orbit's and the reconstruction's renders (default: --resolution).
     #[arg(long)]
     pub render_resolution: Option<i64>,
-    /// Seed of the renderer noise and ray subsets.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
+    /// Seed of the renderer noise and ray subsets (gdrf-edit's --noise-seed; --seed is the
+    /// same flag, its older name).
+    #[arg(long, alias = "seed", default_value_t = 0)]
+    pub noise_seed: u64,
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     pub device: String,
@@ -212,7 +215,7 @@ pub fn run(a: &Options) -> Result<()> {
         ray_fraction: a.ray_fraction,
         coarse_fraction: a.coarse_fraction,
         patience: a.patience,
-        seed: a.seed,
+        seed: a.noise_seed,
         bf16: a.bf16,
         refine_pose: a.refine_pose,
         pose_lr: a.pose_lr.to_radians(),
