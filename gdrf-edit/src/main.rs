@@ -100,7 +100,7 @@ struct RenderArgs {
     #[arg(long, default_value_t = 0)]
     grid: i64,
     /// Density above which a grid cell counts as occupied (no denser point lies in an empty cell).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = GridConfig::default().threshold)]
     grid_threshold: f64,
     /// With --grid: sample only the occupied cells along each ray (empty stretches between
     /// them count as empty space), not the whole interval from the first to the last.

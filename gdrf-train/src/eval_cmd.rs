@@ -37,13 +37,13 @@ struct TrainProbeArgs {
     /// scratch: a small CNN on 64² images.
     #[arg(long, default_value = "efficientnet")]
     backbone: String,
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = ProbeConfig::default().epochs)]
     epochs: usize,
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = ProbeConfig::default().batch_size)]
     batch_size: i64,
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = ProbeConfig::default().lr)]
     lr: f64,
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = ProbeConfig::default().seed)]
     seed: u64,
     /// Use only the first N training images (quick runs and tests; 0 = all).
     #[arg(long, default_value_t = 0)]
@@ -82,17 +82,17 @@ struct RunArgs {
     #[arg(long)]
     probe: Option<PathBuf>,
     /// Generated images per distribution (model and random generator).
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = EvalOptions::default().num)]
     num: i64,
     /// Side of the swap matrix (shape i × appearance j).
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = EvalOptions::default().swap)]
     swap: i64,
     /// Render resolution (default: the dataset's).
     #[arg(long)]
     resolution: Option<i64>,
     /// Samples per ray (coarse; as many fine), as in gdrf-invert and gdrf-edit; `--steps` is
     /// the same flag (its older name: steps are optimisation steps everywhere else).
-    #[arg(long, alias = "steps", default_value_t = 24)]
+    #[arg(long, alias = "steps", default_value_t = EvalOptions::default().samples)]
     samples: i64,
     /// Also score the real images seen at this lower resolution (antialiased down, then
     /// back up): what the resolution alone costs real data, the reference for a generator
@@ -103,7 +103,7 @@ struct RunArgs {
     /// --psi (1 = none, how GANs are usually scored; the authors render with 0.7). The random
     /// end is never truncated, so positions stay on one scale; truncation trades variety
     /// (coverage) for typical samples, and eval.json records ψ.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = EvalOptions::default().psi)]
     psi: f64,
     /// efficientnet (offline default) or inception (FID's network; needs --weights).
     #[arg(long, default_value = "efficientnet")]
@@ -117,7 +117,7 @@ struct RunArgs {
     out: Option<PathBuf>,
     /// The evaluation seed: the model's codes and poses, the random-weight generator of the
     /// random end, and the kernel distance's subsets.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = EvalOptions::default().seed)]
     seed: u64,
     /// Several seeds, comma-separated (e.g. 0,1,2), scored with one real end: each seed's
     /// eval.json and report.png go to OUT/seed-S/, and OUT/seeds.json holds every score's

@@ -63,6 +63,25 @@ pub struct EvalOptions {
     pub psi: f64,
 }
 
+impl Default for EvalOptions {
+    /// `gdrf-train eval`'s defaults: 1 000 images, an 8 × 8 swap matrix, 24 + 24 samples,
+    /// EfficientNet-Lite0 features, seed 0, no truncation.
+    fn default() -> Self {
+        Self {
+            num: 1000,
+            swap: 8,
+            resolution: None,
+            samples: 24,
+            seed: 0,
+            features: FeatureKind::Efficientnet,
+            effnet_weights: crate::pretrained::effnet::EfficientNetLite0::default_path(),
+            threads: 0,
+            real_resolution: None,
+            psi: 1.0,
+        }
+    }
+}
+
 /// Renders `z` at `poses` (batches of 16, no jitter, importance samples at the midpoints:
 /// no random numbers) with `g`, its codes truncated by `trunc` when given. `codes`: shape
 /// and appearance codes `(N, latent)` each.

@@ -333,7 +333,7 @@ impl Trainer {
     /// settings, the dataset of `[data]`; each seed beside its random-weight generator) and
     /// records it on the learning curve ([`curve::record`]). Returns the curve's line.
     pub fn evaluate(&mut self) -> Result<serde_json::Value> {
-        use crate::eval::evaluator::{score_generator, EvalOptions, Evaluator, FeatureKind};
+        use crate::eval::evaluator::{score_generator, EvalOptions, Evaluator};
         let e = self.cfg.eval.clone();
         let probe = e.probe.clone().ok_or_else(|| Error::Config("eval.probe is not set".into()))?;
         let seeds = if e.seeds.is_empty() { vec![self.cfg.seed] } else { e.seeds.clone() };
@@ -345,11 +345,8 @@ impl Trainer {
                 resolution: (e.resolution > 0).then_some(e.resolution),
                 samples: e.samples,
                 seed: seeds[0],
-                features: FeatureKind::Efficientnet,
-                effnet_weights: crate::pretrained::effnet::EfficientNetLite0::default_path(),
                 threads: self.cfg.threads,
-                real_resolution: None,
-                psi: 1.0,
+                ..EvalOptions::default()
             };
             self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
         }
