@@ -38,6 +38,11 @@ pub struct Header {
     /// (training checkpoints only; its schema belongs to [`crate::train`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub training: Option<serde_json::Value>,
+    /// CRC-32 of the tensors ([`checksum`]), written by [`to_bytes`] and checked by
+    /// [`load`], which then clears it: a loaded header equals the one that was saved. Files
+    /// written before it existed have none and load unchecked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checksum: Option<String>,
 }
 
 /// The generator header's `info` key holding the resolution of its last training step.
@@ -67,6 +72,7 @@ impl Header {
             camera,
             info: BTreeMap::new(),
             training: None,
+            checksum: None,
         }
     }
 }
@@ -90,11 +96,29 @@ pub fn is_finite(t: &Tensor) -> bool {
     }
 }
 
-/// Serialises named tensors and the header to safetensors bytes. A tensor with a NaN or
-/// an infinity is an error naming it: such a checkpoint is never written.
+/// Serialises named tensors and the header, with their [`checksum`], to safetensors bytes.
+/// A tensor with a NaN or an infinity is an error naming it: such a checkpoint is never
+/// written.
 pub fn to_bytes(tensors: &[(String, Tensor)], header: &Header) -> Result<Vec<u8>> {
-    let json = serde_json::to_string(header)?;
+    let sorted: BTreeMap<&str, &Tensor> = tensors.iter().map(|(n, t)| (n.as_str(), t)).collect();
+    let header = Header { checksum: Some(checksum(sorted)?), ..header.clone() };
+    let json = serde_json::to_string(&header)?;
     tensors_to_bytes(tensors, HEADER_KEY, &json)
+}
+
+/// CRC-32 (hex) of tensors in name order: each one's name, dtype, shape and bytes as
+/// stored. A flipped bit in a file's tensor data still parses; this tells.
+pub fn checksum<'a>(tensors: impl IntoIterator<Item = (&'a str, &'a Tensor)>) -> Result<String> {
+    let mut h = crc32fast::Hasher::new();
+    for (name, t) in tensors {
+        let t = t.detach().to_device(Device::Cpu).contiguous();
+        let mut buf = vec![0u8; t.numel() * t.kind().elt_size_in_bytes()];
+        t.f_copy_data_u8(&mut buf, t.numel())?;
+        h.update(name.as_bytes());
+        h.update(format!("{:?}{:?}", dtype_of(t.kind())?, t.size()).as_bytes());
+        h.update(&buf);
+    }
+    Ok(format!("{:08x}", h.finalize()))
 }
 
 /// Serialises named tensors with one JSON metadata entry under `key` (other models'
@@ -139,12 +163,21 @@ pub struct Checkpoint {
 pub fn load(path: &Path) -> Result<Checkpoint> {
     let (json, tensors) = load_tensors_with(path, HEADER_KEY)?;
     let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
-    let header: Header = serde_json::from_str(&json).map_err(|e| not(format!("bad header: {e}")))?;
+    let mut header: Header = serde_json::from_str(&json).map_err(|e| not(format!("bad header: {e}")))?;
     if header.format_version > FORMAT_VERSION {
         return Err(not(format!(
             "format version {} is newer than this program's {FORMAT_VERSION}",
             header.format_version
         )));
+    }
+    if let Some(stored) = header.checksum.take() {
+        let found = checksum(tensors.iter().map(|(n, t)| (n.as_str(), t)))?;
+        if found != stored {
+            return Err(not(format!(
+                "its tensors do not match the checksum written with them (stored {stored}, found {found}): \
+                 the file was damaged after it was written"
+            )));
+        }
     }
     Ok(Checkpoint { path: path.to_path_buf(), header, tensors })
 }

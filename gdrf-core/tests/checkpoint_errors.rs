@@ -1,9 +1,10 @@
 //! Bad checkpoints give errors that name the problem: a wrong tensor shape, a truncated
-//! file, a file that is no checkpoint, a missing or unexpected tensor.
+//! file, a file that is no checkpoint, a missing or unexpected tensor, a flipped bit the
+//! checksum catches.
 mod common;
 
 use common::TempDir;
-use gdrf_core::checkpoint::{load_generator, save, save_generator, Header};
+use gdrf_core::checkpoint::{load, load_generator, save, save_generator, Header};
 use gdrf_core::{Error, Generator, GeneratorConfig};
 use tch::{nn, Device, Kind, Tensor};
 
@@ -119,4 +120,26 @@ fn saving_is_atomic_and_leaves_no_temporary_files() {
     let bad = dir.path("no/such/dir/g.safetensors");
     let msg = save_generator(&bad, &vs, &Header::generator(small(), None)).unwrap_err().to_string();
     assert!(msg.contains("no/such/dir"), "{msg}");
+}
+
+/// A bit flipped in tensor data still parses as safetensors and is finite: only the
+/// checksum the header carries tells. A good file loads with the header it was saved with.
+#[test]
+fn a_flipped_bit_in_tensor_data_is_caught_by_the_checksum() {
+    let dir = TempDir::new("ckpt-flip").unwrap();
+    let cfg = small();
+    let p = dir.path("g.safetensors");
+    let header = Header::generator(cfg.clone(), None);
+    save(&p, &tensors_of(&cfg), &header).unwrap();
+    assert_eq!(load(&p).unwrap().header, header, "the checksum is checked, then cleared");
+    let good = std::fs::read(&p).unwrap();
+    // The last byte of the file is the lowest byte of the last tensor's last element.
+    let mut bad = good.clone();
+    *bad.last_mut().unwrap() ^= 1;
+    let q = dir.path("flipped.safetensors");
+    std::fs::write(&q, &bad).unwrap();
+    let e = load_err(&q);
+    let msg = e.to_string();
+    assert!(matches!(e, Error::NotACheckpoint { .. }), "{msg}");
+    assert!(msg.contains("checksum") && msg.contains("flipped.safetensors"), "{msg}");
 }

@@ -1,7 +1,7 @@
 //! The training loop on a tiny model (seconds on a CPU): checkpoints and exports, exact
 //! resume, the non-finite guard (skip, then rollback), fade-in, stage switches and EMA at
-//! their configured steps, refusal of non-finite checkpoints, and the two-pass patch step
-//! giving the single-pass gradient.
+//! their configured steps, refusal of non-finite checkpoints, resuming past a damaged
+//! newest checkpoint, and the two-pass patch step giving the single-pass gradient.
 mod common;
 
 use common::TempDir;
@@ -519,4 +519,45 @@ fn previews_neither_draw_from_nor_depend_on_the_global_generator() {
             && first.swap.equal(&second.swap)
             && first.template.equal(&second.template)
     );
+}
+
+/// The newest checkpoint truncated, with a flipped bit, or with a NaN written over a value:
+/// resume names it, resumes from the one before and says why; with every checkpoint
+/// damaged it is an error listing each one tried.
+#[test]
+fn a_damaged_newest_checkpoint_is_passed_over() {
+    let dir = TempDir::new("train-damaged").unwrap();
+    let run_dir = dir.path("run");
+    let mut t = Trainer::new(tiny_config(&dir.0, ""), &run_dir).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    run_steps(&mut t, 4);
+    drop(t);
+    let list = run::list_checkpoints(&run_dir).unwrap();
+    let [(older_step, older), (4, newest)] = &list[..] else { panic!("checkpoints {list:?}") };
+    let good = std::fs::read(newest).unwrap();
+    let nan = |b: &mut Vec<u8>| {
+        let n = b.len();
+        b[n - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+    };
+    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 3] =
+        [("truncated", &|b| b.truncate(b.len() / 2)), ("checksum", &|b| *b.last_mut().unwrap() ^= 1), ("NaN", &nan)];
+    for (why, damage) in damages {
+        let mut bytes = good.clone();
+        damage(&mut bytes);
+        std::fs::write(newest, &bytes).unwrap();
+        let t = Trainer::resume(&run_dir, None).unwrap();
+        assert_eq!(t.progress().step, *older_step, "{why}");
+        let skipped = t.skipped_checkpoints();
+        assert_eq!(skipped.len(), 1, "{why}: {skipped:?}");
+        assert_eq!(&skipped[0].0, newest);
+        assert!(skipped[0].1.contains(why) && skipped[0].1.contains("step-00000004"), "{}", skipped[0].1);
+    }
+    std::fs::write(newest, &good).unwrap();
+    assert!(Trainer::resume(&run_dir, None).unwrap().skipped_checkpoints().is_empty());
+    // Nothing loads: the error lists both files, newest first.
+    std::fs::write(newest, &good[..good.len() / 2]).unwrap();
+    std::fs::write(older, b"").unwrap();
+    let e = Trainer::resume(&run_dir, None).err().expect("no checkpoint loads").to_string();
+    let (at_newest, at_older) = (e.find("step-00000004"), e.find(older.file_name().unwrap().to_str().unwrap()));
+    assert!(e.contains("no checkpoint loads") && at_newest.is_some() && at_newest < at_older, "{e}");
 }

@@ -129,6 +129,9 @@ pub fn train(a: TrainArgs) -> Result<()> {
         }
         _ => bail!("pass --config FILE or --resume RUN_DIR"),
     };
+    for (path, why) in trainer.skipped_checkpoints() {
+        eprintln!("warning: passed over {}, which is damaged: {why}", path.display());
+    }
     let threads = gdrf_core::data::thread_count(trainer.cfg().threads);
     tch::set_num_threads(threads as i32);
 

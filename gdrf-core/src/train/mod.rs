@@ -187,6 +187,8 @@ pub struct Trainer {
     evaluator: Option<crate::eval::evaluator::Evaluator>,
     /// Seconds of each step since the last evaluation (the curve's step time).
     step_seconds: Vec<f64>,
+    /// Checkpoints a resume passed over as damaged, newest first, with why.
+    skipped: Vec<(PathBuf, String)>,
 }
 
 impl Trainer {
@@ -224,6 +226,12 @@ impl Trainer {
 
     pub fn disc_vars(&self) -> &nn::VarStore {
         &self.dvs
+    }
+
+    /// The newer checkpoints [`Trainer::resume`] found damaged and passed over, newest
+    /// first, with why (empty when it resumed from the newest).
+    pub fn skipped_checkpoints(&self) -> &[(PathBuf, String)] {
+        &self.skipped
     }
 
     /// Threads for the steps from now on (`--threads` on resume); 0 means all cores.

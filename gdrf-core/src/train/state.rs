@@ -70,18 +70,37 @@ impl Trainer {
             injected: BTreeSet::new(),
             evaluator: None,
             step_seconds: Vec::new(),
+            skipped: Vec::new(),
         })
     }
 
-    /// Continues the run in `run_dir` from its newest checkpoint. `device` overrides the
-    /// saved config's device (the run continues identically elsewhere).
+    /// Continues the run in `run_dir` from its newest checkpoint that loads. `device`
+    /// overrides the saved config's device (the run continues identically elsewhere). A
+    /// damaged checkpoint (truncated, a checksum that does not match, a non-finite or
+    /// missing tensor) is passed over for the next older one, and named in
+    /// [`Trainer::skipped_checkpoints`]; when none loads, the error lists every one tried.
     pub fn resume(run_dir: &Path, device: Option<&str>) -> Result<Self> {
-        let (_, path) = run::latest_checkpoint(run_dir)?;
-        let mut t = Self::from_checkpoint(&path, run_dir, device)?;
-        run::truncate_metrics(run_dir, t.progress.step)?;
-        curve::truncate(run_dir, t.progress.step)?;
-        t.injected.clear();
-        Ok(t)
+        let newest = run::latest_checkpoint(run_dir)?.1;
+        let all = run::list_checkpoints(run_dir)?;
+        let mut skipped = Vec::new();
+        for (_, path) in all.iter().rev() {
+            match Self::from_checkpoint(path, run_dir, device) {
+                Ok(mut t) => {
+                    run::truncate_metrics(run_dir, t.progress.step)?;
+                    curve::truncate(run_dir, t.progress.step)?;
+                    t.injected.clear();
+                    t.skipped = skipped;
+                    return Ok(t);
+                }
+                Err(e) if damaged(&e) => skipped.push((path.clone(), e.to_string())),
+                Err(e) => return Err(e),
+            }
+        }
+        let tried: Vec<String> = skipped.iter().map(|(_, why)| format!("  {why}")).collect();
+        Err(Error::Data {
+            path: newest.parent().unwrap_or(run_dir).to_path_buf(),
+            reason: format!("no checkpoint loads; tried, newest first:\n{}", tried.join("\n")),
+        })
     }
 
     /// Continues the run in `run_dir` under a changed config (a longer schedule, other
@@ -249,4 +268,19 @@ struct RollbackLine {
     lr_scale: f64,
     /// The step the run went back to.
     step: i64,
+}
+
+/// Whether `e` says a checkpoint file is damaged (what a crash, a full disk or a flipped bit
+/// leaves), so that resuming may fall back to an older one, rather than that the run
+/// cannot continue at all (another device, another config).
+fn damaged(e: &Error) -> bool {
+    matches!(
+        e,
+        Error::Io { .. }
+            | Error::NotACheckpoint { .. }
+            | Error::ShapeMismatch { .. }
+            | Error::MissingTensor { .. }
+            | Error::UnexpectedTensor { .. }
+            | Error::DType { .. }
+    )
 }
