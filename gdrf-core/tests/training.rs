@@ -561,3 +561,25 @@ fn a_damaged_newest_checkpoint_is_passed_over() {
     let (at_newest, at_older) = (e.find("step-00000004"), e.find(older.file_name().unwrap().to_str().unwrap()));
     assert!(e.contains("no checkpoint loads") && at_newest.is_some() && at_newest < at_older, "{e}");
 }
+
+/// A run directory missing its config, its metrics or its samples folder still resumes
+/// from its checkpoints (they hold the config), and carries on writing.
+#[test]
+fn a_run_directory_missing_its_config_metrics_or_samples_resumes() {
+    let dir = TempDir::new("train-partial").unwrap();
+    let run_dir = dir.path("run");
+    let mut t = Trainer::new(tiny_config(&dir.0, ""), &run_dir).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    run_steps(&mut t, 4);
+    drop(t);
+    std::fs::remove_file(run_dir.join(run::CONFIG)).unwrap();
+    std::fs::remove_file(run_dir.join(run::METRICS)).unwrap();
+    std::fs::remove_dir_all(run_dir.join(run::SAMPLES)).unwrap();
+    let mut t = Trainer::resume(&run_dir, None).unwrap();
+    assert_eq!(t.progress().step, 4);
+    t.prepare_data(&|| {}).unwrap();
+    run_steps(&mut t, 2);
+    let steps: Vec<i64> = run::read_metrics(&run_dir).unwrap().iter().filter_map(|l| l["step"].as_i64()).collect();
+    assert_eq!(steps, [4, 5]);
+    assert_eq!(run::latest_checkpoint(&run_dir).unwrap().0, 6);
+}

@@ -1,7 +1,8 @@
 //! gdrf-train from the command line: config errors name the key, SIGTERM (what Ctrl-C
 //! and schedulers send) writes a checkpoint of the last finished step and `--resume`
 //! continues from it, an existing run is never overwritten silently, a run directory in
-//! use is refused to a second process, and `plot` draws.
+//! use is refused to a second process, a write that fails for lack of space stops the run
+//! with an error naming the file and the last checkpoint intact, and `plot` draws.
 #[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
@@ -156,4 +157,46 @@ fn a_rollback_is_reported_where_the_run_is_watched() {
     let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{said}");
     assert!(said.contains("step 3: non-finite steps in a row; rolled back to step 0 with lr × 0.5"), "{said}");
+}
+
+/// A checkpoint that cannot be written (here: a file-size limit, what a full disk does to a
+/// write) stops training with exit 1 and an error naming the file; the checkpoint before it
+/// is intact, no temporary file is left, and the run resumes from it.
+#[test]
+fn a_checkpoint_that_cannot_be_written_stops_the_run_and_keeps_the_last_one() {
+    let dir = TempDir::new("cli-full").unwrap();
+    let cfg = write_config(&dir.0, 100);
+    let run = dir.path("run");
+    let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&run).args(["--steps", "2"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let listed = checkpoints(&run);
+    assert_eq!(listed.last().map(String::as_str), Some("step-00000002.safetensors"), "{listed:?}");
+    let before = std::fs::read(run.join("checkpoints/step-00000002.safetensors")).unwrap();
+    // The limit lets the metrics lines through and stops the checkpoint (hundreds of KB).
+    // SIGXFSZ is ignored, as a process under a quota or on a full disk sees no signal:
+    // the write itself fails (EFBIG; ENOSPC on a full disk).
+    let limited = Command::new("sh")
+        .arg("-c")
+        .arg(r#"trap "" XFSZ; ulimit -f 64; exec "$0" "$@""#)
+        .arg(env!("CARGO_BIN_EXE_gdrf-train"))
+        .arg("--resume")
+        .arg(&run)
+        .args(["--steps", "2"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&limited.stderr);
+    assert_eq!(limited.status.code(), Some(1), "{err}");
+    assert!(err.contains("step-00000004.safetensors") && err.contains("too large"), "{err}");
+    assert_eq!(checkpoints(&run), listed, "no new or temporary checkpoint file");
+    assert_eq!(std::fs::read(run.join("checkpoints/step-00000002.safetensors")).unwrap(), before);
+    let leftovers: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp-"))
+        .collect();
+    assert!(leftovers.is_empty(), "temporary files left: {leftovers:?}");
+    let again = bin().arg("--resume").arg(&run).args(["--steps", "2"]).output().unwrap();
+    assert!(again.status.success(), "{}", String::from_utf8_lossy(&again.stderr));
+    assert_eq!(checkpoints(&run).last().map(String::as_str), Some("step-00000004.safetensors"));
 }
