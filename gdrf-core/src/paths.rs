@@ -36,6 +36,17 @@ pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
     move |source| Error::Io { path: path.to_path_buf(), err: source }
 }
 
+/// What [`write_atomic`]'s temporary files carry in their name: `.NAME.tmp-PID`.
+const TEMPORARY: &str = ".tmp-";
+
+/// Whether `name` is one of [`write_atomic`]'s temporary files (left behind only by a
+/// process killed while writing).
+pub fn is_temporary(name: &str) -> bool {
+    name.rsplit_once(TEMPORARY).is_some_and(|(dot_name, pid)| {
+        dot_name.len() > 1 && dot_name.starts_with('.') && !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit())
+    })
+}
+
 /// Writes `bytes` to `path` atomically: a temporary file in the same folder, flushed to
 /// disk, then renamed over the target. A crash leaves either the old or the new file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -44,7 +55,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         _ => PathBuf::from("."),
     };
     let name = path.file_name().ok_or_else(|| Error::Invalid(format!("{}: not a file path", path.display())))?;
-    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    let tmp = dir.join(format!(".{}{TEMPORARY}{}", name.to_string_lossy(), std::process::id()));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp).map_err(io_err(&tmp))?;
         f.write_all(bytes).map_err(io_err(&tmp))?;

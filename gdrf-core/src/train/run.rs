@@ -63,6 +63,9 @@ impl RunLock {
         }
         file.set_len(0).map_err(io(&path))?;
         write!(file, "{}", std::process::id()).map_err(io(&path))?;
+        // Holding the lock, no other process writes here: a temporary file is what a process
+        // killed mid-write (kill -9, a crash, power loss) left behind.
+        remove_temporaries(run_dir)?;
         Ok(Self { _file: file })
     }
 }
@@ -107,6 +110,22 @@ pub fn prune_checkpoints(run_dir: &Path, keep: usize) -> Result<()> {
     let all = list_checkpoints(run_dir)?;
     for (_, path) in all.iter().take(all.len().saturating_sub(keep)) {
         std::fs::remove_file(path).map_err(io(path))?;
+    }
+    Ok(())
+}
+
+/// Removes [`crate::paths::write_atomic`]'s temporary files from `dir` and the folders in
+/// it (checkpoints, samples, evaluations).
+fn remove_temporaries(dir: &Path) -> Result<()> {
+    for entry in std::fs::read_dir(dir).map_err(io(dir))? {
+        let entry = entry.map_err(io(dir))?;
+        let path = entry.path();
+        let kind = entry.file_type().map_err(io(&path))?;
+        if kind.is_dir() {
+            remove_temporaries(&path)?;
+        } else if kind.is_file() && crate::paths::is_temporary(&entry.file_name().to_string_lossy()) {
+            std::fs::remove_file(&path).map_err(io(&path))?;
+        }
     }
     Ok(())
 }
@@ -171,6 +190,29 @@ mod tests {
         assert!(e.contains("in use by another gdrf-train") && e.contains(&pid), "{e}");
         drop(held);
         RunLock::acquire(&dir).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// What a process killed mid-write leaves (`.NAME.tmp-PID`, in the run folder or one
+    /// below it) is removed when the next process takes the folder; nothing else is.
+    #[test]
+    fn taking_a_run_directory_removes_what_a_killed_writer_left() {
+        let dir = std::env::temp_dir().join(format!("gdrf-lock-tmp-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join(CHECKPOINTS)).unwrap();
+        let left = [".metrics.jsonl.tmp-123", "checkpoints/.step-00000004.safetensors.tmp-4567"];
+        let kept = ["metrics.jsonl", "checkpoints/step-00000002.safetensors", ".tmp-1", "notes.tmp-2", ".a.tmp-x"];
+        for f in left.iter().chain(&kept) {
+            std::fs::write(dir.join(f), b"x").unwrap();
+        }
+        let lock = RunLock::acquire(&dir).unwrap();
+        for f in left {
+            assert!(!dir.join(f).exists(), "{f} left behind");
+        }
+        for f in kept {
+            assert!(dir.join(f).exists(), "{f} removed");
+        }
+        drop(lock);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
