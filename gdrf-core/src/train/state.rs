@@ -80,8 +80,11 @@ impl Trainer {
     /// missing tensor) is passed over for the next older one, and named in
     /// [`Trainer::skipped_checkpoints`]; when none loads, the error lists every one tried.
     pub fn resume(run_dir: &Path, device: Option<&str>) -> Result<Self> {
-        let newest = run::latest_checkpoint(run_dir)?.1;
         let all = run::list_checkpoints(run_dir)?;
+        if all.is_empty() {
+            // The error that says what a run folder should hold.
+            run::latest_checkpoint(run_dir)?;
+        }
         let mut skipped = Vec::new();
         for (_, path) in all.iter().rev() {
             match Self::from_checkpoint(path, run_dir, device) {
@@ -98,7 +101,7 @@ impl Trainer {
         }
         let tried: Vec<String> = skipped.iter().map(|(_, why)| format!("  {why}")).collect();
         Err(Error::Data {
-            path: newest.parent().unwrap_or(run_dir).to_path_buf(),
+            path: run_dir.join(run::CHECKPOINTS),
             reason: format!("no checkpoint loads; tried, newest first:\n{}", tried.join("\n")),
         })
     }
