@@ -6,13 +6,16 @@ gdrf checkpoint (safetensors with a JSON header).
         [--ema ema.pth] [--camera chair|car|carla]
 
 `generator.pth` may be a state dict, a dict holding one under 'state_dict' or
-'generator', or a pickled generator module (then the release's code must be importable).
+'generator', or a pickled generator module (then the release's code must be importable,
+and --trust-pickle given: unpickling a module runs code from the file, so only files of
+a source you trust should be opened that way; plain state dicts never need it).
 `--ema` replaces the parameters by the EMA shadow (torch_ema state: 'shadow_params' in the
 release's parameter order), as the authors' render and FID scripts do.
 """
 import argparse
 import json
 import os
+import pickle
 import sys
 import tempfile
 
@@ -38,11 +41,22 @@ def fail(msg):
     sys.exit(1)
 
 
-def load_state_dict(path):
+def load(path, trust_pickle):
+    """torch.load, restricted to tensors and plain containers unless `trust_pickle`."""
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001 - report any unpickling failure by file
-        fail(f"{path}: cannot be read by torch.load ({e})")
+        return torch.load(path, map_location="cpu", weights_only=not trust_pickle)
+    except pickle.UnpicklingError as e:
+        if not trust_pickle and "Unsupported global" in str(e):
+            fail(f"{path}: holds pickled Python objects besides tensors (a whole module, as the release "
+                 "saves); unpickling them runs code from the file: pass --trust-pickle if you trust its source")
+        reason = str(e.__context__) if "Weights only load failed" in str(e) and e.__context__ else str(e)
+        fail(f"{path}: cannot be read by torch.load ({reason})")
+    except Exception as e:  # noqa: BLE001 - report any reading failure by file
+        fail(f"{path}: cannot be read by torch.load ({type(e).__name__}: {e})")
+
+
+def load_state_dict(path, trust_pickle=False):
+    obj = load(path, trust_pickle)
     if isinstance(obj, torch.nn.Module):
         obj = obj.state_dict()
     if isinstance(obj, dict):
@@ -55,11 +69,8 @@ def load_state_dict(path):
     return {k.removeprefix("module."): v for k, v in obj.items()}
 
 
-def apply_ema(state, path):
-    try:
-        ema = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:  # noqa: BLE001
-        fail(f"{path}: cannot be read by torch.load ({e})")
+def apply_ema(state, path, trust_pickle=False):
+    ema = load(path, trust_pickle)
     if not isinstance(ema, dict):
         ema = getattr(ema, "state_dict", lambda: None)()
     shadow = ema.get("shadow_params") if isinstance(ema, dict) else None
@@ -125,10 +136,12 @@ def main(argv=None):
     ap.add_argument("out", help="the gdrf checkpoint to write (.safetensors)")
     ap.add_argument("--ema", help="the release's ema.pth (EMA 0.999 shadow) to use instead of the raw weights")
     ap.add_argument("--camera", choices=sorted(CAMERAS), help="record the dataset's camera in the header")
+    ap.add_argument("--trust-pickle", action="store_true",
+                    help="also open files that hold pickled modules (runs code from them; trusted sources only)")
     a = ap.parse_args(argv)
-    state = load_state_dict(a.generator)
+    state = load_state_dict(a.generator, a.trust_pickle)
     if a.ema:
-        state = apply_ema(state, a.ema)
+        state = apply_ema(state, a.ema, a.trust_pickle)
     tensors, header = convert(state, a.camera, {"converted_from": os.path.basename(a.generator),
                                                 "ema": os.path.basename(a.ema) if a.ema else "none"})
     save_checkpoint(tensors, header, a.out)

@@ -279,6 +279,27 @@ pub fn save_generator(path: &Path, vs: &nn::VarStore, header: &Header) -> Result
     save(path, &tensors, header)
 }
 
+/// Refuses a file whose header describes an invalid generator, or one far larger than the
+/// `tensors` it stores (a damaged or hostile header), before the generator is built:
+/// building it would allocate what the header claims. Within twice the stored values
+/// (plus 64 Ki), loading goes on and names the tensors that differ.
+pub fn check_generator_size<'a>(
+    path: &Path,
+    cfg: &GeneratorConfig,
+    tensors: impl IntoIterator<Item = &'a Tensor>,
+) -> Result<()> {
+    let not = |reason: String| Error::NotACheckpoint { path: path.to_path_buf(), reason };
+    cfg.validate().map_err(|e| not(format!("its header's generator: {e}")))?;
+    let stored: u128 = tensors.into_iter().map(|t| t.numel() as u128).sum();
+    let promised = cfg.parameter_count();
+    if promised > stored.saturating_mul(2).saturating_add(1 << 16) {
+        return Err(not(format!(
+            "its header describes a generator of {promised} parameters, far more than the {stored} values it stores"
+        )));
+    }
+    Ok(())
+}
+
 /// Loads a generator checkpoint onto `device` in `kind` (Float or Double). A training
 /// checkpoint gives its EMA generator (what samples and evaluation use).
 pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedGenerator> {
@@ -298,6 +319,7 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
             })
         }
     }
+    check_generator_size(path, &ckpt.header.generator, ckpt.tensors.values())?;
     let mut vs = nn::VarStore::new(device);
     let generator = Generator::new(&vs.root(), &ckpt.header.generator)?;
     if kind == Kind::Double {

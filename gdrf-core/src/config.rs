@@ -75,6 +75,36 @@ impl GeneratorConfig {
         Self { latent_dim: 8, hidden_dim: 16, mapping_hidden_dim: 16, ..Default::default() }
     }
 
+    /// How many values the generator of this config holds (every weight and bias), without
+    /// building it: a checkpoint whose header promises more than its file stores is refused
+    /// before anything is allocated. Saturates instead of overflowing.
+    pub fn parameter_count(&self) -> u128 {
+        let n = |v: usize| v as u128;
+        let linear = |a: u128, b: u128| a.saturating_mul(b).saturating_add(b);
+        let (z, h, m) = (n(self.latent_dim), n(self.hidden_dim), n(self.mapping_hidden_dim));
+        let mapping = |out: u128| [linear(z, m), linear(m, m), linear(m, m), linear(m, out)];
+        // Layers of width H whose first takes `first` inputs and the rest H.
+        let stack = |layers: usize, first: u128| match layers {
+            0 => 0,
+            l => linear(first, h).saturating_add(linear(h, h).saturating_mul(n(l) - 1)),
+        };
+        // The colour layers: H → H, except the last, which takes the view direction too.
+        let colour = match self.colour_layers {
+            0 => 0,
+            l => linear(h, h).saturating_mul(n(l) - 1).saturating_add(linear(h + 3, h)),
+        };
+        let parts = [
+            stack(self.trunk_layers, 3),
+            linear(h, 1),
+            colour,
+            linear(h, 3),
+            stack(self.deform_layers, 3),
+            linear(h, 4),
+        ];
+        let modulations = [self.colour_layers, self.deform_layers].map(|l| n(l).saturating_mul(2).saturating_mul(h));
+        parts.into_iter().chain(modulations.into_iter().flat_map(mapping)).fold(0, u128::saturating_add)
+    }
+
     pub fn validate(&self) -> Result<()> {
         let positive = [
             ("latent_dim", self.latent_dim),

@@ -48,3 +48,43 @@ fn bad_inputs_name_the_file() {
     assert!(!ok && err.contains("ema_short.pth") && err.contains("47 shadow parameters"), "{err}");
     assert!(!dir.path("out.safetensors").exists(), "a failed conversion left an output file");
 }
+
+/// Mutated release files (scripts/reference/fuzz_converter.py, a fixed seed): each converts
+/// or is refused with exit 1 and a message naming the file; no other exception escapes and
+/// no temporary file stays beside the output.
+#[test]
+fn mutated_release_files_convert_or_are_refused_naming_the_file() {
+    let dir = TempDir::new("convert-fuzz").unwrap();
+    let out = Command::new(python())
+        .arg(repo_root().join("scripts/reference/fuzz_converter.py"))
+        .args(["--dir", dir.0.to_str().unwrap(), "--cases", "100"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    println!("{said}");
+    assert!(out.status.success(), "{said}\n{}", String::from_utf8_lossy(&out.stderr));
+    let counts: serde_json::Value = serde_json::from_str(&said).unwrap();
+    assert_eq!(counts["cases"], 100);
+    assert!(counts["refused_naming_the_file"].as_u64().unwrap() > 0, "{said}");
+}
+
+/// A file holding a pickled module (what the release saves) is opened only with
+/// --trust-pickle: unpickling it runs code from the file.
+#[test]
+fn a_pickled_module_needs_trust_pickle() {
+    let dir = TempDir::new("convert-pickle").unwrap();
+    let module = dir.path("module.pth");
+    let made = Command::new(python())
+        .args(["-c", "import sys, torch; torch.save(torch.nn.Linear(2, 3), sys.argv[1])"])
+        .arg(&module)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let out = dir.path("out.safetensors");
+    let (ok, err) = convert(&[module.to_str().unwrap(), out.to_str().unwrap()]);
+    assert!(!ok && err.contains("module.pth") && err.contains("--trust-pickle"), "{err}");
+    let (ok, err) = convert(&[module.to_str().unwrap(), out.to_str().unwrap(), "--trust-pickle"]);
+    // Opened: a Linear is no GDRF generator, which is the error now.
+    assert!(!ok && !err.contains("--trust-pickle") && err.contains("missing tensor"), "{err}");
+    assert!(!out.exists());
+}

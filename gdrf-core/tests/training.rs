@@ -539,8 +539,25 @@ fn a_damaged_newest_checkpoint_is_passed_over() {
         let n = b.len();
         b[n - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
     };
-    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 3] =
-        [("truncated", &|b| b.truncate(b.len() / 2)), ("checksum", &|b| *b.last_mut().unwrap() ^= 1), ("NaN", &nan)];
+    // A header (outside the checksum) whose generator is a million times wider than the
+    // tensors stored: refused before the networks are built, which would allocate ~1 PB.
+    let wide = |b: &mut Vec<u8>| {
+        let n = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        let json = std::str::from_utf8(&b[8..8 + n]).unwrap();
+        let key = "\\\"hidden_dim\\\":";
+        assert!(json.contains(key), "{json}");
+        let json = json.replace(key, &format!("{key}1600000"));
+        let mut out = (json.len() as u64).to_le_bytes().to_vec();
+        out.extend_from_slice(json.as_bytes());
+        out.extend_from_slice(&b[8 + n..]);
+        *b = out;
+    };
+    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 4] = [
+        ("truncated", &|b| b.truncate(b.len() / 2)),
+        ("checksum", &|b| *b.last_mut().unwrap() ^= 1),
+        ("NaN", &nan),
+        ("far more than", &wide),
+    ];
     for (why, damage) in damages {
         let mut bytes = good.clone();
         damage(&mut bytes);

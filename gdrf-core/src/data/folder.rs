@@ -73,6 +73,18 @@ pub fn decode_rgba(path: &Path) -> Result<image::Rgba32FImage> {
         // The JPEG decoder fills a truncated scan with grey instead of failing.
         return Err(data_err("truncated JPEG (no end-of-image marker after the image data)".into()));
     }
+    // The header's size, read before decoding: a damaged or hostile header would otherwise
+    // have the decoder allocate the image it claims (up to the decoder's 512 MiB limit).
+    let reader = image::ImageReader::with_format(std::io::Cursor::new(&bytes), format);
+    let (w, h) = reader.into_dimensions().map_err(|e| data_err(format!("cannot decode {format:?}: {e}")))?;
+    let pixels = u64::from(w) * u64::from(h);
+    if pixels > MAX_PIXELS_PER_BYTE * bytes.len() as u64 {
+        return Err(data_err(format!(
+            "its header claims {w}×{h} pixels, more than {} bytes of PNG or JPEG can hold \
+             (at most {MAX_PIXELS_PER_BYTE} pixels a byte): the file is damaged",
+            bytes.len()
+        )));
+    }
     let img = image::load_from_memory_with_format(&bytes, format)
         .map_err(|e| data_err(format!("cannot decode {format:?}: {e}")))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
@@ -81,6 +93,10 @@ pub fn decode_rgba(path: &Path) -> Result<image::Rgba32FImage> {
     }
     Ok(img.into_rgba32f())
 }
+
+/// The most pixels one byte of PNG can encode: deflate expands a byte into at most 1032,
+/// each holding up to 8 pixels (1 bit a pixel). JPEG stays far below (≥ 1 bit a block of 64).
+const MAX_PIXELS_PER_BYTE: u64 = 8 * 1032;
 
 /// A JPEG is complete when an end-of-image marker (FF D9) follows its last
 /// start-of-scan marker (FF DA); trailing bytes after it are allowed.

@@ -235,6 +235,36 @@ mod tests {
         assert_eq!(f64::try_from(grad[0].abs().max()).unwrap(), 0.0);
     }
 
+    /// The count a config promises without building (what checkpoint loading compares with
+    /// the file) is the built generator's, for the default, the tiny and odd configs.
+    #[test]
+    fn parameter_count_is_the_built_generators() {
+        for cfg in [
+            GeneratorConfig::default(),
+            GeneratorConfig::tiny(),
+            GeneratorConfig {
+                latent_dim: 5,
+                hidden_dim: 7,
+                mapping_hidden_dim: 11,
+                trunk_layers: 1,
+                colour_layers: 2,
+                deform_layers: 3,
+                ..Default::default()
+            },
+        ] {
+            let vs = nn::VarStore::new(Device::Cpu);
+            Generator::new(&vs.root(), &cfg).unwrap();
+            let built: i64 = vs.variables().values().map(|t| t.numel() as i64).sum();
+            assert_eq!(cfg.parameter_count(), built as u128, "{cfg:?}");
+        }
+        for huge in [
+            GeneratorConfig { hidden_dim: usize::MAX, ..Default::default() },
+            GeneratorConfig { hidden_dim: usize::MAX, colour_layers: usize::MAX, ..Default::default() },
+        ] {
+            assert_eq!(huge.parameter_count(), u128::MAX);
+        }
+    }
+
     /// With a non-zero head (`deform_head_frequency`), codes start with different shapes:
     /// Δx at the same points differs between two codes, by about the head's scale.
     #[test]

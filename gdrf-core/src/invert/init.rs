@@ -259,6 +259,19 @@ impl Initialiser {
                 return Err(bad(format!("it was trained for generator {}, not for this one ({id})", h.generator)));
             }
         }
+        // Checked before the network is built from them: a damaged header must not allocate.
+        if !(16..=512).contains(&h.resolution) {
+            return Err(bad(format!("resolution {} is out of range, expected 16 to 512", h.resolution)));
+        }
+        let head = t.get("head.weight").ok_or_else(|| bad("no tensor 'head.weight'".into()))?;
+        if h.mapping_hidden < 1 || head.size() != [h.mapping_hidden.saturating_add(3), 512] {
+            return Err(bad(format!(
+                "'head.weight' has shape {:?}, but the header's mapping_hidden {} needs [{}, 512]",
+                head.size(),
+                h.mapping_hidden,
+                h.mapping_hidden.saturating_add(3)
+            )));
+        }
         let init = Self::new(device, h.mapping_hidden, h.resolution);
         tch::no_grad(|| -> Result<()> {
             for (name, mut v) in init.vs.variables() {

@@ -145,6 +145,11 @@ impl Trainer {
         if let Some(d) = device {
             cfg.device = d.to_string();
         }
+        // A damaged header (outside the checksum) is refused here, naming the file, before
+        // the networks it describes are built.
+        cfg.validate().map_err(|e| bad(format!("its config: {e}")))?;
+        let ema = ckpt.tensors.iter().filter(|(n, _)| n.starts_with("ema.")).map(|(_, t)| t);
+        checkpoint::check_generator_size(path, &cfg.generator, ema)?;
         let mut t = Self::seeded(cfg, run_dir)?;
         let split = |prefix: &str| -> BTreeMap<String, Tensor> {
             ckpt.tensors

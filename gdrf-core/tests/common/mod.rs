@@ -137,3 +137,41 @@ pub fn assert_close(name: &str, got: &Tensor, want: &Tensor, atol: f64, rtol: f6
     );
     r
 }
+
+/// A tiny training config (8² images, 8 synthetic chairs, one thread, a metrics line every
+/// step, a checkpoint only at the end, no previews) written to DIR/tiny.toml.
+pub fn tiny_run_config(dir: &Path, total_steps: i64) -> PathBuf {
+    let text = tiny_training_toml(
+        "seed = 1\nthreads = 1",
+        &format!("total_steps = {total_steps}\nlog_interval = 1\ncheckpoint_interval = 1000\nsample_interval = 0"),
+        r#"
+[[stages]]
+from_step = 0
+resolution = 8
+num_steps = 4
+batch_size = 2
+
+[data]
+path = "data"
+
+[data.synth]
+count = 8
+resolution = 16
+supersample = 1
+shadows = false
+"#,
+    );
+    let path = dir.join("tiny.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// The checkpoint files of a run (`step-N.safetensors`, no temporaries), oldest first.
+pub fn checkpoint_names(run: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(run.join("checkpoints"))
+        .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    v.retain(|n| n.starts_with("step-") && n.ends_with(".safetensors"));
+    v.sort();
+    v
+}
