@@ -5,6 +5,11 @@
 use std::path::PathBuf;
 
 fn main() {
+    link(&libtorch_lib());
+}
+
+/// The folder of the project's libtorch (`libtorch_cpu.so` and friends).
+pub fn libtorch_lib() -> PathBuf {
     println!("cargo:rerun-if-env-changed=GDRF_LIBTORCH_LIB");
     println!("cargo:rerun-if-env-changed=LIBTORCH");
     let lib = std::env::var_os("GDRF_LIBTORCH_LIB")
@@ -16,6 +21,11 @@ fn main() {
     if !lib.join("libtorch_cpu.so").exists() {
         panic!("{} holds no libtorch_cpu.so: re-run scripts/setup.sh", lib.display());
     }
+    lib
+}
+
+/// The rpath to `lib`, and libtorch_cuda kept linked where it exists.
+pub fn link(lib: &std::path::Path) {
     println!("cargo:rustc-link-arg=-Wl,-rpath,{}", lib.display());
     if lib.join("libtorch_cuda.so").exists() {
         println!("cargo:rustc-link-arg=-Wl,-L{}", lib.display());

@@ -39,6 +39,10 @@ pub enum Error {
     Invalid(String),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
+    /// A launcher variable that is missing or wrong (named), or a collective of the
+    /// data-parallel process group that failed (a peer that died or never came, a timeout).
+    #[error("distributed: {0}")]
+    Distributed(String),
     /// What was being done when `err` stopped it, naming the flag or file
     /// (`loading --checkpoint FILE: …`). Not `source`, as for [`Error::Io`].
     #[error("{what}: {err}")]

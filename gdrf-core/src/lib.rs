@@ -16,6 +16,7 @@ pub mod config;
 pub mod data;
 pub mod device;
 pub mod disc;
+pub mod dist;
 pub mod edit;
 pub mod error;
 pub mod eval;

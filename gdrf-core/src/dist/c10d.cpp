@@ -1,0 +1,105 @@
+// The narrow C interface of gdrf's bridge to libtorch's c10d (dist/mod.rs is its only
+// user): a TCPStore rendezvous, a Gloo process group, and three collectives on tch's
+// tensors. Every C++ exception is caught and returned as a message: nothing aborts.
+//
+// Only exported, non-inline c10d entry points are called (constructors, collectives,
+// `wait`): the gloo headers this compiles against may be older than the gloo inside the
+// wheel, and types instantiated inline here could disagree with it in layout.
+#include <torch/csrc/distributed/c10d/ProcessGroupGloo.hpp>
+#include <torch/csrc/distributed/c10d/TCPStore.hpp>
+
+#include <chrono>
+#include <cstring>
+#include <string>
+#include <vector>
+
+namespace {
+
+struct Group {
+  c10::intrusive_ptr<c10d::Store> store;
+  c10::intrusive_ptr<c10d::ProcessGroupGloo> pg;
+};
+
+void say(char* err, size_t len, const std::string& msg) {
+  if (err == nullptr || len == 0) return;
+  size_t n = std::min(len - 1, msg.size());
+  std::memcpy(err, msg.data(), n);
+  err[n] = '\0';
+}
+
+template <typename F>
+int guarded(char* err, size_t len, F f) {
+  try {
+    f();
+    return 0;
+  } catch (const c10::Error& e) {
+    // Without the C++ stack trace that what() appends.
+    say(err, len, e.what_without_backtrace());
+  } catch (const std::exception& e) {
+    say(err, len, e.what());
+  } catch (...) {
+    say(err, len, "unknown C++ exception");
+  }
+  return 1;
+}
+
+}  // namespace
+
+extern "C" {
+
+// Joins the group: rank 0 serves the store at host:port, every rank connects to it, and
+// the Gloo group binds to `bind_host` (empty: the machine's own hostname, as torch's
+// default). NULL on failure, with the reason in `err`.
+void* gdrf_c10d_new(const char* host, int port, int rank, int world, const char* bind_host, long timeout_ms,
+                    char* err, size_t err_len) {
+  Group* g = nullptr;
+  int failed = guarded(err, err_len, [&] {
+    auto timeout = std::chrono::milliseconds(timeout_ms);
+    c10d::TCPStoreOptions so;
+    so.port = static_cast<std::uint16_t>(port);
+    so.isServer = rank == 0;
+    so.numWorkers = static_cast<std::size_t>(world);
+    so.waitWorkers = true;
+    so.timeout = timeout;
+    auto store = c10::make_intrusive<c10d::TCPStore>(std::string(host), so);
+    auto opts = c10d::ProcessGroupGloo::Options::create(timeout);
+    std::string bind(bind_host);
+    opts->devices.push_back(bind.empty() ? c10d::ProcessGroupGloo::createDefaultDevice()
+                                         : c10d::ProcessGroupGloo::createDeviceForHostname(bind));
+    auto pg = c10::make_intrusive<c10d::ProcessGroupGloo>(store, rank, world, opts);
+    g = new Group{store, pg};
+  });
+  return failed ? nullptr : g;
+}
+
+// Sums `tensor` (an at::Tensor*, as tch holds it) over all ranks, in place.
+int gdrf_c10d_allreduce_sum(void* group, void* tensor, char* err, size_t err_len) {
+  return guarded(err, err_len, [&] {
+    std::vector<at::Tensor> ts{*static_cast<at::Tensor*>(tensor)};
+    c10d::AllreduceOptions o;
+    o.reduceOp = c10d::ReduceOp::SUM;
+    static_cast<Group*>(group)->pg->allreduce(ts, o)->wait();
+  });
+}
+
+// Overwrites `tensor` on every rank with rank `root`'s.
+int gdrf_c10d_broadcast(void* group, void* tensor, int root, char* err, size_t err_len) {
+  return guarded(err, err_len, [&] {
+    std::vector<at::Tensor> ts{*static_cast<at::Tensor*>(tensor)};
+    c10d::BroadcastOptions o;
+    o.rootRank = root;
+    static_cast<Group*>(group)->pg->broadcast(ts, o)->wait();
+  });
+}
+
+// Returns when every rank has called it (or the group's timeout has passed: an error).
+int gdrf_c10d_barrier(void* group, char* err, size_t err_len) {
+  return guarded(err, err_len, [&] { static_cast<Group*>(group)->pg->barrier()->wait(); });
+}
+
+void gdrf_c10d_free(void* group) {
+  char ignored[1];
+  guarded(ignored, sizeof ignored, [&] { delete static_cast<Group*>(group); });
+}
+
+}  // extern "C"
