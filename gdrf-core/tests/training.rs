@@ -552,11 +552,24 @@ fn a_damaged_newest_checkpoint_is_passed_over() {
         out.extend_from_slice(&b[8 + n..]);
         *b = out;
     };
-    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 4] = [
+    // A discriminator 2.5 billion times wider than stored (~1 TB), the same way.
+    let wide_d = |b: &mut Vec<u8>| {
+        let n = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        let json = std::str::from_utf8(&b[8..8 + n]).unwrap();
+        let key = "\\\"channels\\\":[";
+        assert!(json.contains(key), "{json}");
+        let json = json.replace(key, &format!("{key}1000000000"));
+        let mut out = (json.len() as u64).to_le_bytes().to_vec();
+        out.extend_from_slice(json.as_bytes());
+        out.extend_from_slice(&b[8 + n..]);
+        *b = out;
+    };
+    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 5] = [
         ("truncated", &|b| b.truncate(b.len() / 2)),
         ("checksum", &|b| *b.last_mut().unwrap() ^= 1),
         ("NaN", &nan),
         ("far more than", &wide),
+        ("more than any tensor it stores holds", &wide_d),
     ];
     for (why, damage) in damages {
         let mut bytes = good.clone();

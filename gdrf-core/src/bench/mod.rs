@@ -1,5 +1,5 @@
 //! The benchmark commands (`gdrf-edit bench`: `render`, `gdrf-invert bench`: `invert`,
-//! `gdrf-bench losses` and `step`: `losses`, `step`) and what they share: medians, the
+//! `gdrf-bench losses`, `step` and `allreduce`: `losses`, `step`, `allreduce`) and what they share: medians, the
 //! process's peak memory, running a PyTorch reference script (`scripts/reference/`) with
 //! the project's Python, and writing their JSON.
 //!
@@ -13,6 +13,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
+#[cfg(feature = "cli")]
+pub mod allreduce;
 #[cfg(feature = "cli")]
 pub mod invert;
 #[cfg(feature = "cli")]

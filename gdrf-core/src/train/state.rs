@@ -150,6 +150,20 @@ impl Trainer {
         cfg.validate().map_err(|e| bad(format!("its config: {e}")))?;
         let ema = ckpt.tensors.iter().filter(|(n, _)| n.starts_with("ema.")).map(|(_, t)| t);
         checkpoint::check_generator_size(path, &cfg.generator, ema)?;
+        // Every discriminator width is some stored tensor's dimension: a wider one is a
+        // damaged header, and building it would allocate what it claims.
+        let widest = ckpt
+            .tensors
+            .iter()
+            .filter(|(n, _)| n.starts_with("discriminator."))
+            .flat_map(|(_, t)| t.size())
+            .max()
+            .unwrap_or(0);
+        if let Some(c) = cfg.discriminator.channels.iter().find(|&&c| c > widest) {
+            return Err(bad(format!(
+                "its header's discriminator has {c} channels, more than any tensor it stores holds ({widest})"
+            )));
+        }
         let mut t = Self::seeded(cfg, run_dir)?;
         let split = |prefix: &str| -> BTreeMap<String, Tensor> {
             ckpt.tensors

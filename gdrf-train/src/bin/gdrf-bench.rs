@@ -1,7 +1,7 @@
 //! gdrf-bench: benchmarks run side by side with the PyTorch reference (scripts/reference/),
 //! printing medians and ratios and writing JSON and a bar chart (gdrf_core::bench).
 use clap::{Parser, Subcommand};
-use gdrf_core::bench::{losses, step};
+use gdrf_core::bench::{allreduce, losses, step};
 
 #[derive(Parser)]
 #[command(version, about = "Benchmarks of gdrf against the PyTorch reference, in one run.")]
@@ -22,12 +22,17 @@ enum Bench {
     /// the CPU or a GPU (`--device`), in float32 or bfloat16. Real images come from a small procedural dataset generated in a temporary
     /// folder (the reference uses random images). Timed steps are steps where R1 is due.
     Step(step::Options),
+    /// The gradient all-reduce of data-parallel training (a config's generator and
+    /// discriminator parameters, Gloo over loopback, one thread a rank) against the bucket
+    /// size, through gdrf's c10d bridge and through torch.distributed.
+    Allreduce(allreduce::Options),
 }
 
 fn main() {
     let result = match Cli::parse().command {
         Bench::Losses(a) => losses::run(&a).map(drop),
         Bench::Step(a) => step::run(&a).map(drop),
+        Bench::Allreduce(a) => allreduce::run(&a).map(drop),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
