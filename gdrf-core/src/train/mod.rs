@@ -13,6 +13,7 @@ pub mod optim;
 pub mod pass;
 pub mod run;
 pub mod samples;
+mod parallel;
 mod state;
 mod step;
 
@@ -189,6 +190,8 @@ pub struct Trainer {
     step_seconds: Vec<f64>,
     /// Checkpoints a resume passed over as damaged, newest first, with why.
     skipped: Vec<(PathBuf, String)>,
+    /// The data-parallel group this trainer is a rank of ([`Trainer::join_group`]).
+    group: Option<crate::dist::ProcessGroup>,
 }
 
 impl Trainer {

@@ -71,6 +71,7 @@ impl Trainer {
             evaluator: None,
             step_seconds: Vec::new(),
             skipped: Vec::new(),
+            group: None,
         })
     }
 

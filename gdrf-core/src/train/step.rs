@@ -3,11 +3,13 @@
 //! term, and the guarded application of each update.
 use super::optim::{clip_grads, grad_norm, zero_grads};
 use super::{discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, patch_gradients};
+use super::parallel::GRADIENT_BUCKET_BYTES;
 use super::{FakeBatch, Stage, StepKind, StepReport, Trainer};
 use crate::camera::Poses;
 use crate::data::{self, Dataset};
 use crate::disc::augment::AugmentedJudge;
 use crate::disc::Judge;
+use crate::dist::Reduce;
 use crate::loss::coverage::{coverage_gradients, CoverageDraws};
 use crate::loss::deform_reg::reg_ray_count;
 use crate::loss::{Losses, Schedule};
@@ -140,7 +142,11 @@ impl Trainer {
         let ds = &self.datasets[&res];
         let flips: Option<Vec<bool>> =
             ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
-        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
+        // Drawn for the global batch, then this rank's rows: the same images as one process.
+        let (first, n) = self.shard(b);
+        let rows = first as usize..(first + n) as usize;
+        let (idx, flips) = (&idx[rows.clone()], flips.as_ref().map(|f| &f[rows]));
+        let (real, real_poses) = ds.batch(idx, flips)?;
         Ok((real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))))
     }
 
@@ -163,7 +169,11 @@ impl Trainer {
             jitter: Some(self.rng(step, jitter).uniform(&shape)),
             importance: Some(self.rng(step, importance).uniform(&shape)),
         };
-        (z, poses, noise)
+        // Drawn for the global batch, then this rank's rows.
+        let (first, n) = self.shard(b);
+        let rows = |t: &Tensor| t.narrow(0, first, n);
+        let noise = Noise { jitter: noise.jitter.as_ref().map(rows), importance: noise.importance.as_ref().map(rows) };
+        (rows(&z), poses.narrow(first, n), noise)
     }
 
     /// The discriminator behind the configured augmentation (`[discriminator] augment`),
@@ -209,7 +219,7 @@ impl Trainer {
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
         losses.total.backward();
-        Ok(self.apply(Net::D, &losses, lr))
+        self.apply(Net::D, &losses, lr)
     }
 
     fn generator_step(
@@ -236,7 +246,7 @@ impl Trainer {
             losses.total = &losses.total + &c * self.cfg.loss.coverage_weight;
             losses.terms.push(("g_coverage", c));
         }
-        Ok(self.apply(Net::G, &losses, lr))
+        self.apply(Net::G, &losses, lr)
     }
 
     /// The coverage term's gradient, left in G (see [`crate::loss::coverage`]), with this
@@ -321,9 +331,11 @@ impl Trainer {
             (poses, noise)
         };
         let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
+        let (first, n) = self.shard(b);
         let reg_rays =
             Tensor::from_slice(&self.rng(step, Purpose::RegRays).below((b * n_reg) as usize, (res * res) as u64))
                 .view([b, n_reg])
+                .narrow(0, first, n)
                 .to_device(self.device);
         let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
         GenDraws { z, poses, noise, reg_rays, inject }
@@ -375,7 +387,7 @@ impl Trainer {
             losses.total.backward();
             losses
         };
-        let d = self.apply(Net::D, &d, d_lr);
+        let d = self.apply(Net::D, &d, d_lr)?;
         self.dvs.freeze();
         let mut mean = ChunkMean::default();
         let fault = if draws.inject { f64::NAN } else { 1.0 };
@@ -470,12 +482,29 @@ impl Trainer {
     }
 
     /// Checks finiteness, clips and applies one network's update.
-    fn apply(&mut self, net: Net, losses: &Losses, lr: f64) -> Update {
+    fn apply(&mut self, net: Net, losses: &Losses, lr: f64) -> Result<Update> {
         let vs = match net {
             Net::G => &self.gvs,
             Net::D => &self.dvs,
         };
-        let total = losses.total.double_value(&[]);
+        let mut total = losses.total.double_value(&[]);
+        let mut terms = losses.values();
+        if let Some(group) = &self.group {
+            // The global batch's gradient and losses: every rank's mean over its shard,
+            // averaged. Before the norm, so clipping and the skip decision (a NaN on any
+            // rank reaches all) see the same values on every rank.
+            let grads: Vec<Tensor> =
+                vs.trainable_variables().iter().map(|p| p.grad()).filter(|g| g.defined()).collect();
+            group.all_reduce(&grads, Reduce::Average, GRADIENT_BUCKET_BYTES)?;
+            let values: Vec<f64> = std::iter::once(total).chain(terms.iter().map(|(_, v)| *v)).collect();
+            let values = [Tensor::from_slice(&values)];
+            group.all_reduce(&values, Reduce::Average, GRADIENT_BUCKET_BYTES)?;
+            let v = Vec::<f64>::try_from(&values[0])?;
+            total = v[0];
+            for (t, x) in terms.iter_mut().zip(&v[1..]) {
+                t.1 = *x;
+            }
+        }
         let norm = grad_norm(vs);
         let ok = total.is_finite() && norm.is_finite();
         if ok {
@@ -490,7 +519,19 @@ impl Trainer {
                 Net::D => self.adam_d.step(&self.dvs, lr),
             }
         }
-        Update { total, terms: losses.values(), norm, skipped: !ok }
+        Ok(Update { total, terms, norm, skipped: !ok })
+    }
+
+    /// This process's rows of a global batch of `b`: `(first, count)`; all of them in one
+    /// process, rank r's equal share among several ([`Trainer::join_group`]).
+    pub fn shard(&self, b: i64) -> (i64, i64) {
+        match &self.group {
+            Some(g) => {
+                let n = b / g.world() as i64;
+                (g.rank() as i64 * n, n)
+            }
+            None => (0, b),
+        }
     }
 }
 
