@@ -49,6 +49,67 @@ pub struct TrainArgs {
     /// No progress bar (one line per logged step instead), e.g. for logs of background runs.
     #[arg(long)]
     quiet: bool,
+    /// Data-parallel training: start N worker processes on this machine, ranks of one run
+    /// that split each stage's global batch equally (on CUDA each takes cuda:LOCAL_RANK; on
+    /// the CPU the cores are divided among them). Workers also start from torchrun's
+    /// variables (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT) when these are set.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    nproc: usize,
+    /// Machines of a multi-machine run; each runs the same command with its --node-rank.
+    #[arg(long, value_name = "M", default_value_t = 1)]
+    nnodes: usize,
+    /// This machine's index among --nnodes (0 serves the rendezvous).
+    #[arg(long, value_name = "I", default_value_t = 0)]
+    node_rank: usize,
+    /// Address of machine 0, where rank 0 serves the rendezvous.
+    #[arg(long, value_name = "HOST", default_value = "127.0.0.1")]
+    master_addr: String,
+    /// Port of the rendezvous on --master-addr.
+    #[arg(long, value_name = "PORT", default_value_t = gdrf_core::dist::DEFAULT_PORT)]
+    master_port: u16,
+    /// Seconds a rank waits for the others (the rendezvous, each collective, rank 0's
+    /// evaluations) before it fails with an error naming the rank.
+    #[arg(long, value_name = "SECONDS", default_value_t = 1800)]
+    dist_timeout: u64,
+}
+
+/// Starts this machine's ranks of a data-parallel run (this same command, with torchrun's
+/// variables) and waits for them; a rank that fails is named.
+fn launch(a: &TrainArgs) -> Result<()> {
+    if a.nproc == 0 || a.nnodes == 0 || a.node_rank >= a.nnodes {
+        bail!("--nproc and --nnodes must be at least 1, and --node-rank less than --nnodes");
+    }
+    let exe = std::env::current_exe().context("finding this program")?;
+    let world = a.nproc * a.nnodes;
+    let mut ranks = Vec::new();
+    for local in 0..a.nproc {
+        let rank = a.node_rank * a.nproc + local;
+        let child = std::process::Command::new(&exe)
+            .args(std::env::args_os().skip(1))
+            .env("RANK", rank.to_string())
+            .env("WORLD_SIZE", world.to_string())
+            .env("LOCAL_RANK", local.to_string())
+            .env("LOCAL_WORLD_SIZE", a.nproc.to_string())
+            .env("MASTER_ADDR", &a.master_addr)
+            .env("MASTER_PORT", a.master_port.to_string())
+            .spawn()
+            .with_context(|| format!("starting rank {rank}"))?;
+        ranks.push((rank, child));
+    }
+    let mut failed = Vec::new();
+    for (rank, mut child) in ranks {
+        let status = child.wait().with_context(|| format!("waiting for rank {rank}"))?;
+        if !status.success() {
+            failed.push((rank, status));
+        }
+    }
+    match failed.first() {
+        None => Ok(()),
+        Some((_, status)) if status.code() == Some(130) && failed.iter().all(|(_, s)| s.code() == Some(130)) => {
+            std::process::exit(130)
+        }
+        Some((rank, status)) => bail!("rank {rank} of {world} failed ({status}); its error is above"),
+    }
 }
 
 impl TrainArgs {
@@ -68,14 +129,28 @@ pub fn train(a: TrainArgs) -> Result<()> {
         print!("{}", cfg.to_toml()?);
         return Ok(());
     }
+    // A rank of a data-parallel run when torchrun's variables are set; the launcher of
+    // this machine's ranks when --nproc or --nnodes asks for more than one process.
+    let rank = match std::env::var_os("WORLD_SIZE") {
+        Some(_) => Some(gdrf_core::dist::Launch::from_env()?),
+        None if a.nproc > 1 || a.nnodes > 1 => return launch(&a),
+        None => None,
+    };
+    let writer = rank.as_ref().is_none_or(|l| l.rank == 0);
     if a.steps.is_some_and(|n| n < 1) || a.minutes.is_some_and(|m| m.is_nan() || m <= 0.0) {
         bail!("--steps and --minutes must be positive");
     }
+    // On CUDA each rank of a machine takes its own GPU.
+    let device = |d: &str| match &rank {
+        Some(l) if d == "cuda" => format!("cuda:{}", l.local_rank),
+        _ => d.to_string(),
+    };
     let load = |path: &Path| -> Result<TrainConfig> {
         let mut cfg = TrainConfig::load(path)?;
         if let Some(d) = &a.device {
             cfg.device = d.clone();
         }
+        cfg.device = device(&cfg.device);
         if let Some(t) = a.threads {
             cfg.threads = t;
         }
@@ -97,12 +172,13 @@ pub fn train(a: TrainArgs) -> Result<()> {
         (Some(path), None) => a.run_dir.clone().unwrap_or_else(|| default_run_dir(path)),
         (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
     };
-    let _lock = run::RunLock::acquire(&run_dir)?;
+    // Rank 0 holds the folder; the other ranks of its run write nothing there.
+    let _lock = writer.then(|| run::RunLock::acquire(&run_dir)).transpose()?;
     let mut trainer = match (config, &a.config, &a.resume) {
         (Some(cfg), Some(path), Some(dir)) => Trainer::resume_with(dir, cfg)
             .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
         (Some(cfg), _, None) => {
-            if !run::list_checkpoints(&run_dir)?.is_empty() {
+            if writer && !run::list_checkpoints(&run_dir)?.is_empty() {
                 if !a.force {
                     bail!(
                         "{} already holds a run; continue it with `gdrf-train --resume {}`, or pass --force to start over",
@@ -120,8 +196,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
             Trainer::new(cfg, &run_dir)?
         }
         (None, _, Some(dir)) => {
-            let mut t =
-                Trainer::resume(dir, a.device.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
+            let d = a.device.as_deref().map(device);
+            let mut t = Trainer::resume(dir, d.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
             if let Some(n) = a.threads {
                 t.set_threads(n);
             }
@@ -131,6 +207,15 @@ pub fn train(a: TrainArgs) -> Result<()> {
     };
     for (path, why) in trainer.skipped_checkpoints() {
         eprintln!("warning: passed over {}, which is damaged: {why}", path.display());
+    }
+    if let Some(l) = &rank {
+        // The machine's cores divided among its ranks, unless --threads says otherwise.
+        if a.threads.is_none() {
+            let here: usize = std::env::var("LOCAL_WORLD_SIZE").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
+            trainer.set_threads((gdrf_core::data::thread_count(0) / here.max(1)).max(1));
+        }
+        let group = gdrf_core::dist::ProcessGroup::join(l, std::time::Duration::from_secs(a.dist_timeout))?;
+        trainer.join_group(group)?;
     }
     let threads = gdrf_core::data::thread_count(trainer.cfg().threads);
     tch::set_num_threads(threads as i32);
@@ -150,10 +235,10 @@ pub fn train(a: TrainArgs) -> Result<()> {
         .context("installing the Ctrl-C/SIGTERM handler")?;
     }
 
-    let gen_bar = ProgressBar::new_spinner();
+    let gen_bar = if writer { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
     let prepared = trainer.prepare_data(&|| gen_bar.inc(1))?;
     gen_bar.finish_and_clear();
-    if prepared == gdrf_core::data::Prepared::Generated {
+    if writer && prepared == gdrf_core::data::Prepared::Generated {
         println!("generated the procedural dataset in {}", trainer.cfg().data.path.display());
     }
     let cfg = trainer.cfg().clone();
@@ -161,8 +246,18 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let (g_params, d_all, d_used) = trainer.parameter_counts(stage.resolution);
     let n_images = trainer.dataset(stage.resolution)?.len();
     let from = trainer.progress().step;
+    let (_, world) = trainer.rank_of();
+    let ranks = if world > 1 { format!(", {world} ranks") } else { String::new() };
+    if !writer {
+        // The other ranks print only errors.
+        let stopped = trainer.run(RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) }, &stop, |_, _| {})?;
+        if stopped == Stopped::Interrupted {
+            std::process::exit(130);
+        }
+        return Ok(());
+    }
     println!(
-        "{} run {} at step {from}/{} on {:?} with {threads} threads",
+        "{} run {} at step {from}/{} on {:?} with {threads} threads{ranks}",
         if from == 0 { "starting" } else { "resuming" },
         trainer.run_dir().display(),
         cfg.schedule.total_steps,

@@ -125,3 +125,50 @@ fn a_rollback_is_reported_where_the_run_is_watched() {
     assert!(said.contains("step 3: non-finite steps in a row; rolled back to step 0 with lr × 0.5"), "{said}");
 }
 
+
+/// `--nproc 2` trains one run as two ranks (each half of every batch, rank 0 writing),
+/// and a single process resumes it: its losses follow the ones of a run trained in one
+/// process throughout, within float32 tolerance.
+#[test]
+fn two_ranks_train_a_run_that_one_process_resumes() {
+    let dir = TempDir::new("cli-nproc").unwrap();
+    let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100))
+        .unwrap()
+        .replace("batch_size = 2", "batch_size = 4");
+    let cfg = dir.path("nproc.toml");
+    std::fs::write(&cfg, text).unwrap();
+    let losses = |run: &Path| -> Vec<(i64, f64, f64)> {
+        let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+        text.lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .map(|v| (v["step"].as_i64().unwrap(), v["d_total"].as_f64().unwrap(), v["g_total"].as_f64().unwrap()))
+            .collect()
+    };
+    let alone = dir.path("alone");
+    let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&alone).args(["--steps", "5"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let run = dir.path("ranks");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let out = bin()
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--run-dir")
+        .arg(&run)
+        .args(["--steps", "3", "--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
+        .output()
+        .unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    assert!(said.contains("2 ranks"), "{said}");
+    assert_eq!(common::checkpoint_names(&run).last().map(String::as_str), Some("step-00000003.safetensors"));
+    let out = bin().arg("--resume").arg(&run).args(["--steps", "2"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (want, got) = (losses(&alone), losses(&run));
+    assert_eq!(got.len(), 5, "{got:?}");
+    for ((s, d, g), (s2, d2, g2)) in want.iter().zip(&got) {
+        assert_eq!(s, s2);
+        for (a, b) in [(d, d2), (g, g2)] {
+            assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "step {s}: {a} alone, {b} as ranks then resumed");
+        }
+    }
+}

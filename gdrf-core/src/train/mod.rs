@@ -278,7 +278,9 @@ impl Trainer {
         use std::sync::atomic::Ordering;
         std::fs::create_dir_all(&self.run_dir)
             .map_err(|source| Error::Io { path: self.run_dir.clone(), err: source })?;
-        if run::list_checkpoints(&self.run_dir)?.is_empty() {
+        // Of a data-parallel group, rank 0 alone writes (the ranks are identical replicas).
+        let writer = self.is_writer();
+        if writer && run::list_checkpoints(&self.run_dir)?.is_empty() {
             run::truncate_metrics(&self.run_dir, self.progress.step)?;
             crate::paths::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_store().to_toml()?.as_bytes())?;
             self.save_checkpoint()?;
@@ -291,42 +293,46 @@ impl Trainer {
         let s = self.cfg.schedule.clone();
         let mut saved_at = self.progress.step;
         // An evaluation interrupted before its line was written is made up on resume.
-        if self.eval_due(first) && !curve::has(&self.run_dir, first)? {
+        if writer && self.eval_due(first) && !curve::has(&self.run_dir, first)? {
             self.evaluate()?;
         }
         let stopped = loop {
             if self.progress.step >= s.total_steps {
                 break Stopped::Finished;
             }
-            if stop.load(Ordering::SeqCst) {
+            // Every rank stops at the same step: a stop or limit on any stops all.
+            if self.any_rank(stop.load(Ordering::SeqCst))? {
                 break Stopped::Interrupted;
             }
-            if limits.steps.is_some_and(|n| self.progress.step - first >= n)
-                || limits.seconds.is_some_and(|t| start.elapsed().as_secs_f64() >= t)
-            {
+            if self.any_rank(
+                limits.steps.is_some_and(|n| self.progress.step - first >= n)
+                    || limits.seconds.is_some_and(|t| start.elapsed().as_secs_f64() >= t),
+            )? {
                 break Stopped::Limit;
             }
             let report = self.step()?;
             self.step_seconds.push(report.seconds);
             if let Some(to) = report.rolled_back_to {
                 saved_at = to;
-            } else if report.step % s.log_interval == 0 || report.d_skipped || report.g_skipped {
+            } else if writer && (report.step % s.log_interval == 0 || report.d_skipped || report.g_skipped) {
                 run::append_metrics(&self.run_dir, &report.metrics_line(&self.progress))?;
             }
             on_step(&report, &self.progress);
             let done = self.progress.step;
             if done % s.checkpoint_interval == 0 && report.rolled_back_to.is_none() {
-                self.save_checkpoint()?;
+                if writer {
+                    self.save_checkpoint()?;
+                }
                 saved_at = done;
             }
-            if s.sample_interval > 0 && done % s.sample_interval == 0 {
+            if writer && s.sample_interval > 0 && done % s.sample_interval == 0 {
                 samples::write_previews(self)?;
             }
-            if self.eval_due(done) {
+            if writer && self.eval_due(done) {
                 self.evaluate()?;
             }
         };
-        if saved_at != self.progress.step {
+        if writer && saved_at != self.progress.step {
             self.save_checkpoint()?;
             if s.sample_interval > 0 {
                 samples::write_previews(self)?;

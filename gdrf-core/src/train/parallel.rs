@@ -5,8 +5,9 @@
 //! averaged over the ranks before clipping (`Trainer::apply`). The ranks start from rank 0's
 //! weights and stay identical replicas.
 use super::Trainer;
-use crate::dist::ProcessGroup;
+use crate::dist::{ProcessGroup, Reduce};
 use crate::{Error, Result};
+use tch::Tensor;
 
 /// Bucket size of the gradient all-reduce: 4 MiB and more cost a third of 64 KiB buckets
 /// on chairs-tiny's tensors (`gdrf-bench allreduce`, README).
@@ -48,5 +49,23 @@ impl Trainer {
         }
         self.group = Some(group);
         Ok(())
+    }
+
+    /// Whether this process writes the run's files: alone, or as rank 0 of a group.
+    pub fn is_writer(&self) -> bool {
+        self.group.as_ref().is_none_or(|g| g.rank() == 0)
+    }
+
+    /// This process's rank and the group's size ((0, 1) alone).
+    pub fn rank_of(&self) -> (usize, usize) {
+        self.group.as_ref().map_or((0, 1), |g| (g.rank(), g.world()))
+    }
+
+    /// Whether `flag` is raised on any rank (on this process alone, `flag`).
+    pub(crate) fn any_rank(&self, flag: bool) -> Result<bool> {
+        let Some(g) = &self.group else { return Ok(flag) };
+        let t = [Tensor::from_slice(&[f64::from(u8::from(flag))])];
+        g.all_reduce(&t, Reduce::Sum, 64)?;
+        Ok(t[0].double_value(&[0]) > 0.0)
     }
 }
