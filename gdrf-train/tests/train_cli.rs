@@ -127,10 +127,11 @@ fn a_rollback_is_reported_where_the_run_is_watched() {
 
 
 /// `--nproc 2` trains one run as two ranks (each half of every batch, rank 0 writing),
-/// and a single process resumes it: its losses follow the ones of a run trained in one
-/// process throughout, within float32 tolerance.
+/// and a single process resumes it; and the reverse, a one-process run resumed by two
+/// ranks. Their losses follow the ones of a run trained in one process throughout, within
+/// float32 tolerance.
 #[test]
-fn two_ranks_train_a_run_that_one_process_resumes() {
+fn two_ranks_and_one_process_resume_each_others_runs() {
     let dir = TempDir::new("cli-nproc").unwrap();
     let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100))
         .unwrap()
@@ -163,12 +164,27 @@ fn two_ranks_train_a_run_that_one_process_resumes() {
     assert_eq!(common::checkpoint_names(&run).last().map(String::as_str), Some("step-00000003.safetensors"));
     let out = bin().arg("--resume").arg(&run).args(["--steps", "2"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let (want, got) = (losses(&alone), losses(&run));
-    assert_eq!(got.len(), 5, "{got:?}");
-    for ((s, d, g), (s2, d2, g2)) in want.iter().zip(&got) {
-        assert_eq!(s, s2);
-        for (a, b) in [(d, d2), (g, g2)] {
-            assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "step {s}: {a} alone, {b} as ranks then resumed");
+    // The reverse: one process, then two ranks.
+    let reverse = dir.path("reverse");
+    let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&reverse).args(["--steps", "3"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let out = bin()
+        .arg("--resume")
+        .arg(&reverse)
+        .args(["--steps", "2", "--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let want = losses(&alone);
+    for (what, run) in [("two ranks, then one process", &run), ("one process, then two ranks", &reverse)] {
+        let got = losses(run);
+        assert_eq!(got.len(), 5, "{what}: {got:?}");
+        for ((s, d, g), (s2, d2, g2)) in want.iter().zip(&got) {
+            assert_eq!(s, s2);
+            for (a, b) in [(d, d2), (g, g2)] {
+                assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "{what}, step {s}: {a} alone, {b} here");
+            }
         }
     }
 }
