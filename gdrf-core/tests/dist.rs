@@ -10,6 +10,14 @@ use tch::{Device, Kind, Tensor};
 
 const WORKER: &str = "GDRF_DIST_WORKER";
 
+/// One group at a time in this process: a free port picked for one test's rendezvous could
+/// otherwise be taken by another test's Gloo connections before its store binds it.
+static ONE_GROUP_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// A free port on loopback (bound, then released).
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
@@ -70,6 +78,7 @@ fn tensors_of(rank: usize) -> Vec<Tensor> {
 
 #[test]
 fn two_ranks_sum_average_broadcast_and_meet() {
+    let _one = one_at_a_time();
     if let Some((_, pg)) = worker() {
         assert_eq!(pg.world(), 2);
         // Buckets of 16 bytes split the list into many collectives; of 1 MiB, one per dtype.
@@ -105,6 +114,7 @@ fn two_ranks_sum_average_broadcast_and_meet() {
 
 #[test]
 fn a_port_in_use_is_an_error_naming_master_port() {
+    let _one = one_at_a_time();
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = taken.local_addr().unwrap().port();
     let start = Instant::now();
@@ -116,6 +126,7 @@ fn a_port_in_use_is_an_error_naming_master_port() {
 
 #[test]
 fn a_peer_that_never_arrives_is_an_error_within_the_timeout() {
+    let _one = one_at_a_time();
     let start = Instant::now();
     let e = ProcessGroup::join(&launch(0, 2, free_port()), Duration::from_secs(3)).unwrap_err().to_string();
     let took = start.elapsed();
@@ -126,6 +137,7 @@ fn a_peer_that_never_arrives_is_an_error_within_the_timeout() {
 
 #[test]
 fn a_peer_that_dies_makes_the_other_rank_fail_not_hang() {
+    let _one = one_at_a_time();
     if let Some((_, pg)) = worker() {
         pg.barrier().unwrap();
         if pg.rank() == 1 {

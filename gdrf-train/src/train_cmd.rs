@@ -172,8 +172,16 @@ pub fn train(a: TrainArgs) -> Result<()> {
         (Some(path), None) => a.run_dir.clone().unwrap_or_else(|| default_run_dir(path)),
         (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
     };
-    // Rank 0 holds the folder; the other ranks of its run write nothing there.
+    let group = rank
+        .as_ref()
+        .map(|l| gdrf_core::dist::ProcessGroup::join(l, std::time::Duration::from_secs(a.dist_timeout)))
+        .transpose()?;
+    // Rank 0 holds the folder; the other ranks of its run write nothing there, and read it
+    // only once rank 0 has taken it (clearing what a killed writer left) and resumed.
     let _lock = writer.then(|| run::RunLock::acquire(&run_dir)).transpose()?;
+    if let (Some(g), false) = (&group, writer) {
+        g.barrier()?;
+    }
     let mut trainer = match (config, &a.config, &a.resume) {
         (Some(cfg), Some(path), Some(dir)) => Trainer::resume_with(dir, cfg)
             .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
@@ -205,16 +213,18 @@ pub fn train(a: TrainArgs) -> Result<()> {
         }
         _ => bail!("pass --config FILE or --resume RUN_DIR"),
     };
+    if let (Some(g), true) = (&group, writer) {
+        g.barrier()?;
+    }
     for (path, why) in trainer.skipped_checkpoints() {
         eprintln!("warning: passed over {}, which is damaged: {why}", path.display());
     }
-    if let Some(l) = &rank {
+    if let Some(group) = group {
         // The machine's cores divided among its ranks, unless --threads says otherwise.
         if a.threads.is_none() {
             let here: usize = std::env::var("LOCAL_WORLD_SIZE").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
             trainer.set_threads((gdrf_core::data::thread_count(0) / here.max(1)).max(1));
         }
-        let group = gdrf_core::dist::ProcessGroup::join(l, std::time::Duration::from_secs(a.dist_timeout))?;
         trainer.join_group(group)?;
     }
     let threads = gdrf_core::data::thread_count(trainer.cfg().threads);

@@ -126,12 +126,17 @@ fn a_rollback_is_reported_where_the_run_is_watched() {
 }
 
 
+/// One multi-process run at a time: a free port picked for one run's rendezvous could
+/// otherwise be taken by another run's Gloo connections before its store binds it.
+static ONE_GROUP_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// `--nproc 2` trains one run as two ranks (each half of every batch, rank 0 writing),
 /// and a single process resumes it; and the reverse, a one-process run resumed by two
 /// ranks. Their losses follow the ones of a run trained in one process throughout, within
 /// float32 tolerance.
 #[test]
 fn two_ranks_and_one_process_resume_each_others_runs() {
+    let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new("cli-nproc").unwrap();
     let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100))
         .unwrap()
@@ -185,6 +190,55 @@ fn two_ranks_and_one_process_resume_each_others_runs() {
             for (a, b) in [(d, d2), (g, g2)] {
                 assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "{what}, step {s}: {a} alone, {b} here");
             }
+        }
+    }
+}
+
+/// Three non-finite steps in a row on both ranks roll both back together: they stay in
+/// their group, rank 0 alone logs the rollback, and the run finishes.
+#[test]
+fn two_ranks_roll_back_together() {
+    let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = TempDir::new("cli-nproc-rollback").unwrap();
+    let mut text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 6))
+        .unwrap()
+        .replace("batch_size = 2", "batch_size = 4");
+    text.push_str("\n[debug]\ninject_nonfinite_steps = [1, 2, 3]\n\n[guard]\nrollback_after = 3\n");
+    let cfg = dir.path("rollback.toml");
+    std::fs::write(&cfg, text).unwrap();
+    let run = dir.path("run");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let out = bin()
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--run-dir")
+        .arg(&run)
+        .args(["--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
+        .output()
+        .unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let rollbacks = lines.iter().filter(|l| l["event"] == "rollback").count();
+    let steps: Vec<i64> = lines.iter().filter(|l| l["event"].is_null()).map(|l| l["step"].as_i64().unwrap()).collect();
+    assert_eq!(rollbacks, 1, "{text}");
+    assert_eq!(steps, [0, 1, 2, 3, 4, 5], "{text}");
+    // After the rollback the ranks still train as one process does (averaged halves).
+    let alone = dir.path("alone");
+    let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&alone).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let totals = |text: &str| -> Vec<(f64, f64)> {
+        text.lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|l| l["event"].is_null())
+            .map(|l| (l["d_total"].as_f64().unwrap(), l["g_total"].as_f64().unwrap()))
+            .collect()
+    };
+    let want = totals(&std::fs::read_to_string(alone.join("metrics.jsonl")).unwrap());
+    for (step, ((d, g), (d2, g2))) in want.iter().zip(totals(&text)).enumerate() {
+        for (a, b) in [(d, d2), (g, g2)] {
+            assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "step {step}: {a} alone, {b} as two ranks");
         }
     }
 }

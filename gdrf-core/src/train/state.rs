@@ -203,20 +203,26 @@ impl Trainer {
         let to = back.progress.step;
         let injected = std::mem::take(&mut self.injected);
         let datasets = std::mem::take(&mut self.datasets);
+        // A rank stays in its group: every rank rolls back at the same step, to the same
+        // checkpoint (rank 0's), so the replicas stay identical.
+        let group = self.group.take();
         *self = back;
         self.injected = injected;
         self.datasets = datasets;
+        self.group = group;
         self.progress.lr_scale = p.lr_scale * self.cfg.guard.lr_factor;
         self.progress.rollbacks = p.rollbacks + 1;
         self.progress.consecutive_bad = 0;
         self.progress.skipped_steps = p.skipped_steps;
         self.progress.train_seconds = p.train_seconds;
-        run::truncate_metrics(&self.run_dir, to)?;
-        curve::truncate(&self.run_dir, to)?;
-        run::append_metrics(
-            &self.run_dir,
-            &RollbackLine { event: "rollback", from_step: p.step, lr_scale: self.progress.lr_scale, step: to },
-        )?;
+        if self.is_writer() {
+            run::truncate_metrics(&self.run_dir, to)?;
+            curve::truncate(&self.run_dir, to)?;
+            run::append_metrics(
+                &self.run_dir,
+                &RollbackLine { event: "rollback", from_step: p.step, lr_scale: self.progress.lr_scale, step: to },
+            )?;
+        }
         Ok(to)
     }
 
