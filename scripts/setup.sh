@@ -56,22 +56,6 @@ if [ ! -f "$root/weights/lpips-vgg-heads.safetensors" ] || [ ! -f "$root/weights
     || die "could not convert the LPIPS heads (scripts/convert_lpips_heads.py)."
 fi
 
-# The gloo headers the c10d bridge compiles against (data-parallel training; the wheel ships
-# c10d's own headers but not gloo's): Debian's libgloo-dev. Without them gdrf still builds,
-# with training in one process only.
-if [ ! -f "${GDRF_GLOO_INCLUDE:-/usr/include}/gloo/algorithm.h" ]; then
-  sudo=""
-  [ "$(id -u)" = 0 ] || sudo="sudo -n"
-  if command -v apt-get >/dev/null 2>&1; then
-    say "installing Debian's libgloo-dev (the gloo headers of the c10d bridge)"
-    $sudo apt-get install -y -q libgloo-dev >/dev/null 2>&1 \
-      || { $sudo apt-get update -q >/dev/null 2>&1 && $sudo apt-get install -y -q libgloo-dev >/dev/null 2>&1; } \
-      || say "warning: could not install libgloo-dev; gdrf builds without the c10d bridge (--nproc and its tests fail until it is installed)"
-  else
-    say "warning: no apt-get: install gloo's headers and set GDRF_GLOO_INCLUDE to the folder holding gloo/, or gdrf builds without the c10d bridge"
-  fi
-fi
-
 torch_lib="$("$venv/bin/python" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"
 [ -f "$torch_lib/libtorch_cpu.so" ] || die "libtorch_cpu.so not found in $torch_lib; the torch wheel looks incomplete. Remove .venv and re-run scripts/setup.sh."
 

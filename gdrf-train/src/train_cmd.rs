@@ -74,7 +74,10 @@ pub struct TrainArgs {
 }
 
 /// Starts this machine's ranks of a data-parallel run (this same command, with torchrun's
-/// variables) and waits for them; a rank that fails is named.
+/// variables) and waits for them. Once one fails, the others get --dist-timeout (and ten
+/// seconds to write their error) to fail too, as they do when a peer is gone or silent;
+/// one still running after that (stopped, or hung outside a collective) is killed. The
+/// error names the rank that failed first, and how.
 fn launch(a: &TrainArgs) -> Result<()> {
     if a.nproc == 0 || a.nnodes == 0 || a.node_rank >= a.nnodes {
         bail!("--nproc and --nnodes must be at least 1, and --node-rank less than --nnodes");
@@ -94,21 +97,47 @@ fn launch(a: &TrainArgs) -> Result<()> {
             .env("MASTER_PORT", a.master_port.to_string())
             .spawn()
             .with_context(|| format!("starting rank {rank}"))?;
-        ranks.push((rank, child));
+        ranks.push((rank, child, None));
     }
+    let grace = std::time::Duration::from_secs(a.dist_timeout.saturating_add(10));
+    let mut first_failure: Option<std::time::Instant> = None;
     let mut failed = Vec::new();
-    for (rank, mut child) in ranks {
-        let status = child.wait().with_context(|| format!("waiting for rank {rank}"))?;
-        if !status.success() {
-            failed.push((rank, status));
+    let mut killed = Vec::new();
+    while ranks.iter().any(|r| r.2.is_none()) {
+        for (rank, child, status) in ranks.iter_mut().filter(|r| r.2.is_none()) {
+            if let Some(st) = child.try_wait().with_context(|| format!("waiting for rank {rank}"))? {
+                *status = Some(st);
+                if !st.success() {
+                    first_failure.get_or_insert_with(std::time::Instant::now);
+                    failed.push((*rank, st));
+                }
+            }
         }
+        if first_failure.is_some_and(|t| t.elapsed() > grace) {
+            for (rank, child, status) in ranks.iter_mut().filter(|r| r.2.is_none()) {
+                let _ = child.kill();
+                *status = Some(child.wait()?);
+                killed.push(*rank);
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
     }
+    // Of the ranks seen failing in the same poll, one ended by a signal is the cause.
+    failed.sort_by_key(|(_, st)| st.code().is_some());
+    let stopped = if killed.is_empty() {
+        String::new()
+    } else {
+        format!("; still running {:.0?} later, rank(s) {killed:?} were killed", grace)
+    };
     match failed.first() {
         None => Ok(()),
         Some((_, status)) if status.code() == Some(130) && failed.iter().all(|(_, s)| s.code() == Some(130)) => {
             std::process::exit(130)
         }
-        Some((rank, status)) => bail!("rank {rank} of {world} failed ({status}); its error is above"),
+        Some((rank, status)) if status.code().is_none() => {
+            bail!("rank {rank} of {world} was killed ({status}); the other ranks then stopped{stopped}")
+        }
+        Some((rank, status)) => bail!("rank {rank} of {world} failed ({status}); its error is above{stopped}"),
     }
 }
 
@@ -260,7 +289,8 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let ranks = if world > 1 { format!(", {world} ranks") } else { String::new() };
     if !writer {
         // The other ranks print only errors.
-        let stopped = trainer.run(RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) }, &stop, |_, _| {})?;
+        let stopped =
+            trainer.run(RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) }, &stop, |_, _| {})?;
         if stopped == Stopped::Interrupted {
             std::process::exit(130);
         }

@@ -1,6 +1,6 @@
-//! `gdrf-bench allreduce` end to end at a small size: it starts its ranks, joins them
-//! through the c10d bridge, runs the torch.distributed reference, and writes its JSON and
-//! plot.
+//! `gdrf-bench allreduce` and `gdrf-bench step --nproc 2` end to end at a small size: they
+//! start their ranks, join them through the c10d bridge, run the torch.distributed
+//! reference, and write their JSON and plot.
 #[path = "../../gdrf-core/tests/common/mod.rs"]
 mod common;
 
@@ -30,4 +30,52 @@ fn allreduce_runs_its_ranks_and_the_reference_and_writes_json_and_a_plot() {
     assert_eq!(report["ratio"].as_array().unwrap().len(), 2);
     let png = image::open(dir.path("allreduce-2ranks.png")).unwrap();
     assert_eq!((png.width(), png.height()), (520, 300));
+}
+
+/// `gdrf-bench step --nproc 2` on a tiny config: one process of 2 threads, 2 ranks of one,
+/// and the reference both ways, each with its step and all-reduce times; the JSON and the
+/// plot are written.
+#[test]
+fn step_scaling_runs_ranks_of_both_implementations() {
+    let dir = common::TempDir::new("bench-step-nproc").unwrap();
+    let cfg = common::tiny_run_config(&dir.0, 10);
+    let text = std::fs::read_to_string(&cfg).unwrap().replace("batch_size = 2", "batch_size = 4");
+    std::fs::write(&cfg, text).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_gdrf-bench"))
+        .current_dir(common::repo_root())
+        .args(["step", "--nproc", "2", "--steps", "2", "--warmup", "1", "--config"])
+        .arg(&cfg)
+        .arg("--out-dir")
+        .arg(&dir.0)
+        .output()
+        .unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    assert!(said.contains("scaling efficiency"), "{said}");
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path("step-tiny-stage0-b4-nproc2.json")).unwrap()).unwrap();
+    assert_eq!(doc["phases"], serde_json::json!(["step", "allreduce"]));
+    let runs = doc["runs"].as_array().unwrap();
+    let names: Vec<&str> = runs.iter().map(|r| r["implementation"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "gdrf, 1 process × 2 threads",
+            "gdrf, 2 ranks × 1 thread",
+            "PyTorch reference, 1 process × 2 threads",
+            "PyTorch reference (torch.distributed), 2 ranks × 1 thread"
+        ]
+    );
+    for (i, r) in runs.iter().enumerate() {
+        let (step, comm) = (r["median_s"]["step"].as_f64().unwrap(), r["median_s"]["allreduce"].as_f64().unwrap());
+        assert!(step > 0.0 && step.is_finite(), "{r}");
+        // One process all-reduces nothing; ranks do.
+        if i % 2 == 0 {
+            assert_eq!(comm, 0.0, "{r}");
+        } else {
+            assert!(comm > 0.0 && comm < step, "{r}");
+        }
+        assert!(r["images_per_second"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    assert!(dir.path("step-tiny-stage0-b4-nproc2.png").is_file());
 }

@@ -150,7 +150,8 @@ struct Report {
 #[test]
 fn a_run_killed_at_any_moment_resumes_exactly() {
     let trials: usize = std::env::var("GDRF_KILL_TRIALS").map_or(10, |v| v.parse().expect("GDRF_KILL_TRIALS"));
-    let seed: u64 = std::env::var("GDRF_KILL_SEED").map_or(0x2545_f491_4f6c_dd1d, |v| v.parse().expect("GDRF_KILL_SEED"));
+    let seed: u64 =
+        std::env::var("GDRF_KILL_SEED").map_or(0x2545_f491_4f6c_dd1d, |v| v.parse().expect("GDRF_KILL_SEED"));
     let dir = TempDir::new("faults-kill").unwrap();
     let text = std::fs::read_to_string(tiny_run_config(&dir.0, 10))
         .unwrap()
@@ -170,7 +171,8 @@ fn a_run_killed_at_any_moment_resumes_exactly() {
     let mut report = Report::default();
     // A kill that missed the write it aimed at (the write ended first) is tried again, up
     // to twice; every attempt is a trial and is checked.
-    let mut plan: std::collections::VecDeque<(Moment, u32)> = (0..trials).map(|i| (MOMENTS[i % MOMENTS.len()], 0)).collect();
+    let mut plan: std::collections::VecDeque<(Moment, u32)> =
+        (0..trials).map(|i| (MOMENTS[i % MOMENTS.len()], 0)).collect();
     let mut trial = 0;
     while let Some((aim, attempt)) = plan.pop_front() {
         trial += 1;
@@ -241,7 +243,9 @@ fn a_run_killed_at_any_moment_resumes_exactly() {
         *report.kills.entry(serde_json::to_value(landed).unwrap().as_str().unwrap().to_string()).or_default() += 1;
 
         let logged = logged_steps(&run);
-        let newest = checkpoint_names(&run).last().map(|n| n["step-".len()..n.len() - ".safetensors".len()].parse::<i64>().unwrap());
+        let newest = checkpoint_names(&run)
+            .last()
+            .map(|n| n["step-".len()..n.len() - ".safetensors".len()].parse::<i64>().unwrap());
         let again = match newest {
             None => bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&run).arg("--force").output().unwrap(),
             Some(_) => bin().arg("--resume").arg(&run).output().unwrap(),
@@ -260,7 +264,9 @@ fn a_run_killed_at_any_moment_resumes_exactly() {
             Some(step) => {
                 report.resumed_from_a_checkpoint += 1;
                 if !said.contains(&format!("at step {step}/")) {
-                    report.failures.push(format!("{what}: not resumed from the newest checkpoint, step {step}: {said}"));
+                    report
+                        .failures
+                        .push(format!("{what}: not resumed from the newest checkpoint, step {step}: {said}"));
                 }
                 step
             }
@@ -269,7 +275,9 @@ fn a_run_killed_at_any_moment_resumes_exactly() {
         *report.steps_lost.entry(lost).or_default() += 1;
         println!("{what}: {logged} steps logged, resumed at step {from}");
         if lost > 2 {
-            report.failures.push(format!("{what}: {logged} steps done, resumed at {from}: more than one interval lost"));
+            report
+                .failures
+                .push(format!("{what}: {logged} steps done, resumed at {from}: more than one interval lost"));
         }
         let left = temporaries(&run);
         report.temporaries_left_after_resume += left.len();
@@ -278,7 +286,9 @@ fn a_run_killed_at_any_moment_resumes_exactly() {
         }
         if metrics_without_times(&run) != want || final_state(&run).as_ref() != Some(&want_state) {
             report.diverged += 1;
-            report.failures.push(format!("{what}: the metrics or the final checkpoint differ from the uninterrupted run's"));
+            report
+                .failures
+                .push(format!("{what}: the metrics or the final checkpoint differ from the uninterrupted run's"));
         }
         let _ = std::fs::remove_dir_all(&run);
     }
@@ -375,7 +385,10 @@ fn a_read_only_run_directory_is_an_error_naming_the_file() {
     let before = std::fs::read(&ckpt).unwrap();
     let metrics_before = metrics_without_times(&run);
 
-    for (read_only, names) in [(vec![run.clone(), run.join("checkpoints")], "metrics.jsonl"), (vec![run.join("checkpoints")], "step-00000004.safetensors")] {
+    for (read_only, names) in [
+        (vec![run.clone(), run.join("checkpoints")], "metrics.jsonl"),
+        (vec![run.join("checkpoints")], "step-00000004.safetensors"),
+    ] {
         let mut cmd = bin();
         cmd.arg("--resume").arg(&run).args(["--steps", "2"]);
         as_restricted_user(&mut cmd, &run);

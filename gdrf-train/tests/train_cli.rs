@@ -125,6 +125,14 @@ fn a_rollback_is_reported_where_the_run_is_watched() {
     assert!(said.contains("step 3: non-finite steps in a row; rolled back to step 0 with lr × 0.5"), "{said}");
 }
 
+/// gdrf-train as two ranks on this machine (`--nproc 2`, rendezvous on a free loopback
+/// port), a rank waiting at most `timeout` seconds for the other.
+fn two_ranks(timeout: u64) -> Command {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut c = bin();
+    c.args(["--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", &timeout.to_string()]);
+    c
+}
 
 /// One multi-process run at a time: a free port picked for one run's rendezvous could
 /// otherwise be taken by another run's Gloo connections before its store binds it.
@@ -154,15 +162,8 @@ fn two_ranks_and_one_process_resume_each_others_runs() {
     let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&alone).args(["--steps", "5"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let run = dir.path("ranks");
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let out = bin()
-        .arg("--config")
-        .arg(&cfg)
-        .arg("--run-dir")
-        .arg(&run)
-        .args(["--steps", "3", "--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
-        .output()
-        .unwrap();
+    let out =
+        two_ranks(120).arg("--config").arg(&cfg).arg("--run-dir").arg(&run).args(["--steps", "3"]).output().unwrap();
     let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{said}");
     assert!(said.contains("2 ranks"), "{said}");
@@ -173,13 +174,7 @@ fn two_ranks_and_one_process_resume_each_others_runs() {
     let reverse = dir.path("reverse");
     let out = bin().arg("--config").arg(&cfg).arg("--run-dir").arg(&reverse).args(["--steps", "3"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let out = bin()
-        .arg("--resume")
-        .arg(&reverse)
-        .args(["--steps", "2", "--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
-        .output()
-        .unwrap();
+    let out = two_ranks(120).arg("--resume").arg(&reverse).args(["--steps", "2"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let want = losses(&alone);
     for (what, run) in [("two ranks, then one process", &run), ("one process, then two ranks", &reverse)] {
@@ -207,15 +202,7 @@ fn two_ranks_roll_back_together() {
     let cfg = dir.path("rollback.toml");
     std::fs::write(&cfg, text).unwrap();
     let run = dir.path("run");
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let out = bin()
-        .arg("--config")
-        .arg(&cfg)
-        .arg("--run-dir")
-        .arg(&run)
-        .args(["--nproc", "2", "--master-port", &port.to_string(), "--dist-timeout", "120"])
-        .output()
-        .unwrap();
+    let out = two_ranks(120).arg("--config").arg(&cfg).arg("--run-dir").arg(&run).output().unwrap();
     let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{said}");
     let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
@@ -239,6 +226,142 @@ fn two_ranks_roll_back_together() {
     for (step, ((d, g), (d2, g2))) in want.iter().zip(totals(&text)).enumerate() {
         for (a, b) in [(d, d2), (g, g2)] {
             assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "step {step}: {a} alone, {b} as two ranks");
+        }
+    }
+}
+
+/// The pids of `launcher`'s children whose environment sets `RANK=rank` (Linux).
+fn rank_pids(launcher: u32, rank: usize) -> Vec<u32> {
+    let children = std::fs::read_to_string(format!("/proc/{launcher}/task/{launcher}/children")).unwrap_or_default();
+    children
+        .split_whitespace()
+        .filter_map(|p| p.parse::<u32>().ok())
+        .filter(|p| {
+            std::fs::read(format!("/proc/{p}/environ"))
+                .is_ok_and(|env| env.split(|&b| b == 0).any(|v| v == format!("RANK={rank}").as_bytes()))
+        })
+        .collect()
+}
+
+/// A rank killed mid-run (SIGKILL, after the step-5 checkpoint) makes the other rank
+/// exit with an error that says the peer is gone, well within its timeout; the launcher
+/// names the killed rank; and the newest checkpoint still resumes, in one process. A rank
+/// that hangs instead (SIGSTOP) makes the other fail at --dist-timeout, and the launcher
+/// kills it after the grace period.
+#[test]
+fn a_killed_or_hung_rank_stops_the_run_with_an_error_naming_it() {
+    let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = TempDir::new("cli-nproc-kill").unwrap();
+    let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100_000))
+        .unwrap()
+        .replace("batch_size = 2", "batch_size = 4")
+        .replace("checkpoint_interval = 1000", "checkpoint_interval = 5");
+    let cfg = dir.path("kill.toml");
+    std::fs::write(&cfg, text).unwrap();
+    for (signal, timeout) in [("KILL", 60u64), ("STOP", 4)] {
+        let run = dir.path(&format!("run-{signal}"));
+        let launcher = two_ranks(timeout)
+            .arg("--config")
+            .arg(&cfg)
+            .arg("--run-dir")
+            .arg(&run)
+            .arg("--quiet")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let start = Instant::now();
+        while !common::checkpoint_names(&run).iter().any(|n| n == "step-00000005.safetensors") {
+            assert!(start.elapsed() < Duration::from_secs(120), "no step-5 checkpoint after 2 minutes");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let victim = rank_pids(launcher.id(), 1);
+        assert_eq!(victim.len(), 1, "rank 1's process among the launcher's children");
+        let ok = Command::new("kill").args([&format!("-{signal}"), &victim[0].to_string()]).status().unwrap();
+        assert!(ok.success());
+        let signalled = Instant::now();
+        let mut launcher = launcher;
+        // The survivor's next collective fails at once (a closed connection) or after the
+        // timeout (silence); the launcher waits 10 s more for a rank that is still running.
+        let limit = Duration::from_secs(timeout.min(10) + 10 + 30);
+        while launcher.try_wait().unwrap().is_none() {
+            if signalled.elapsed() > limit {
+                let _ = launcher.kill();
+                let _ = Command::new("kill").args(["-KILL", &victim[0].to_string()]).status();
+                panic!("SIG{signal}: the run still going {limit:?} after rank 1 was signalled");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let took = signalled.elapsed();
+        let out = launcher.wait_with_output().unwrap();
+        let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        println!("SIG{signal}: exited {:?} after {took:.1?}\n{said}", out.status.code());
+        assert_eq!(out.status.code(), Some(1), "{said}");
+        if signal == "KILL" {
+            assert!(said.contains("rank 1 of 2 was killed (signal: 9 (SIGKILL))"), "{said}");
+            assert!(said.contains("all-reduce on rank 0 of 2 failed: rank 1 is gone"), "{said}");
+            assert!(took < Duration::from_secs(timeout), "{took:?}: the survivor waited for its timeout");
+        } else {
+            assert!(said.contains(&format!("rank 1 did not answer within the timeout of {timeout}s")), "{said}");
+            assert!(said.contains("rank(s) [1] were killed"), "{said}");
+        }
+        assert!(
+            !Path::new(&format!("/proc/{}", victim[0])).exists()
+                || std::fs::read_to_string(format!("/proc/{}/stat", victim[0])).is_ok_and(|s| s.contains(") Z ")),
+            "SIG{signal}: rank 1 still alive"
+        );
+        let newest = common::checkpoint_names(&run).last().cloned().unwrap();
+        let out = bin().arg("--resume").arg(&run).args(["--steps", "1", "--quiet"]).output().unwrap();
+        let resumed = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "SIG{signal}: resuming {newest}: {}", String::from_utf8_lossy(&out.stderr));
+        let step: i64 = newest.trim_start_matches("step-").trim_end_matches(".safetensors").parse().unwrap();
+        assert!(resumed.contains(&format!("at step {step}/")), "SIG{signal}: not resumed from {newest}: {resumed}");
+    }
+}
+
+/// A NaN injected into the generator's loss of step 2 on rank 1 alone makes both ranks
+/// skip that update: rank 0 logs the skip, no other step is skipped, and the losses go on
+/// as in one process that skips step 2 (a rank that had applied the NaN would have
+/// poisoned every later average).
+#[test]
+fn a_non_finite_step_on_one_rank_is_skipped_on_both() {
+    let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = TempDir::new("cli-nproc-nan").unwrap();
+    let base = std::fs::read_to_string(common::tiny_run_config(&dir.0, 5))
+        .unwrap()
+        .replace("batch_size = 2", "batch_size = 4");
+    let configs = [("one-rank", "[1]"), ("every-rank", "[]")].map(|(name, ranks)| {
+        let path = dir.path(&format!("{name}.toml"));
+        let text = format!("{base}\n[debug]\ninject_nonfinite_steps = [2]\ninject_nonfinite_ranks = {ranks}\n");
+        std::fs::write(&path, text).unwrap();
+        path
+    });
+    let run = dir.path("ranks");
+    let out = two_ranks(120).arg("--config").arg(&configs[0]).arg("--run-dir").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let alone = dir.path("alone");
+    let out = bin().arg("--config").arg(&configs[1]).arg("--run-dir").arg(&alone).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let lines = |run: &Path| -> Vec<serde_json::Value> {
+        let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+        text.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    };
+    let (got, want) = (lines(&run), lines(&alone));
+    assert_eq!(got.len(), 5);
+    for (g, w) in got.iter().zip(&want) {
+        let step = g["step"].as_i64().unwrap();
+        assert_eq!(g["g_skipped"], serde_json::Value::Bool(step == 2), "step {step}: {g}");
+        assert_eq!(g["g_skipped"], w["g_skipped"], "step {step}");
+        assert_eq!(g["d_skipped"], serde_json::Value::Bool(false), "step {step}: {g}");
+        for key in ["d_total", "g_total"] {
+            let (a, b) = (w[key].as_f64(), g[key].as_f64());
+            match (a, b) {
+                (Some(a), Some(b)) => {
+                    assert!((a - b).abs() <= 1e-4 * a.abs().max(1.0), "step {step} {key}: {a} alone, {b} as two ranks")
+                }
+                // A NaN is written as null; only the skipped step's generator total is one.
+                _ => assert!(step == 2 && key == "g_total" && a.is_none() && b.is_none(), "step {step} {key}: {w} {g}"),
+            }
         }
     }
 }

@@ -8,15 +8,15 @@ size and copied back. One thread a rank; a barrier before each timed all-reduce.
 import argparse
 import json
 import os
-import socket
 import statistics
 import sys
 import time
 
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import dist_ref  # noqa: E402
 
 def buckets(tensors, limit):
     out, start = [], 0
@@ -66,19 +66,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--warmup", type=int, default=3)
     a = ap.parse_args()
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    procs = [ctx.Process(target=rank_main, args=(r, a, port, q)) for r in range(a.world)]
-    for p in procs:
-        p.start()
-    medians = q.get(timeout=600)
-    for p in procs:
-        p.join()
-    if any(p.exitcode != 0 for p in procs):
-        sys.exit("a rank failed")
+    medians = dist_ref.spawn(a.world, rank_main, a, timeout=600)
     print(json.dumps({"median_ms": medians}))
 
 

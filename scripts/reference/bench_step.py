@@ -11,6 +11,12 @@ a training config.
 Real images are random values in [-1, 1] with random poses (timing does not depend on
 them). Timed steps use step indices where R1 is due (multiples of --r1-interval); the
 warm-up steps use the indices 0, 1, ….
+
+With --world N the step runs as N ranks of torch.distributed (Gloo over loopback), each
+on --batch / N images with --threads threads: every network's gradients are all-reduced
+(averaged, in buckets of 16 MiB) after its backward and before clipping, as
+DistributedDataParallel does, and the ranks start every step together. Rank 0's timings
+are printed, with the time in all-reduces as the "allreduce" phase.
 """
 import argparse
 import json
@@ -22,9 +28,11 @@ import sys
 import time
 
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import dist_ref  # noqa: E402
 import gdrf_ref as ref  # noqa: E402
 import losses_ref as L  # noqa: E402
 
@@ -83,7 +91,10 @@ def parse():
     a("--device", default="cpu", help="cpu, cuda or cuda:N (every tensor is created there)")
     a("--bf16", action="store_true", help="bfloat16 autocast around the whole step")
     a("--seed", type=int, default=0)
+    a("--world", type=int, default=1, help="ranks of torch.distributed (Gloo over loopback)")
     args = ap.parse_args()
+    if args.world < 1 or args.batch % args.world or (args.batch // args.world) % args.batch_split:
+        ap.error(f"--world {args.world} must split --batch {args.batch} into shares that --batch-split divides")
     if args.batch_split < 1 or args.batch % args.batch_split:
         ap.error(f"--batch-split {args.batch_split} must divide --batch {args.batch}")
     if len(args.disc_channels) != len(L.CHANNELS):
@@ -96,10 +107,12 @@ def parse():
 
 
 class Bench:
-    def __init__(self, a):
+    def __init__(self, a, rank=0):
         self.a = a
         self.cuda = torch.device(a.device).type == "cuda"
-        torch.manual_seed(a.seed)
+        self.batch = a.batch // a.world  # this rank's share
+        self.comm = 0.0  # seconds in all-reduces
+        torch.manual_seed(a.seed)  # the same weights on every rank
         self.gen = ref.Generator(a.latent_dim, a.hidden_dim, a.mapping_hidden_dim, trunk=a.trunk_layers,
                                  color=a.color_layers, deform_layers=a.deform_layers, correct_scale=a.correct_scale)
         self.disc = L.Discriminator(a.disc_channels)
@@ -111,6 +124,7 @@ class Bench:
         self.ema = [p.detach().clone() for p in self.g_params]
         self.ema_updates = 0
         self.reg_weights = dict(zip(("correction", "smoothness", "rigidity", "normal"), a.reg_weights))
+        torch.manual_seed(a.seed + 1 + rank)  # each rank its own draws
 
     def poses(self, k):
         a = self.a
@@ -127,13 +141,36 @@ class Bench:
                          torch.rand(b, r, n), torch.rand(b, r, n), **kw)
         return shape, out
 
+    def reduce(self, params):
+        """Averages the gradients over the ranks, bucketed as DistributedDataParallel does."""
+        if self.a.world == 1:
+            return
+        t0 = time.perf_counter()
+        grads = [p.grad for p in params if p.grad is not None]
+        start = 0
+        while start < len(grads):
+            end, size = start + 1, grads[start].numel() * grads[start].element_size()
+            while end < len(grads) and size + grads[end].numel() * grads[end].element_size() <= 16 << 20:
+                size += grads[end].numel() * grads[end].element_size()
+                end += 1
+            flat = torch.cat([g.reshape(-1) for g in grads[start:end]])
+            dist.all_reduce(flat)
+            flat /= self.a.world
+            off = 0
+            for g in grads[start:end]:
+                g.copy_(flat[off:off + g.numel()].view_as(g))
+                off += g.numel()
+            start = end
+        self.comm += time.perf_counter() - t0
+
     def clip(self, params):
         if self.a.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(params, self.a.grad_clip)
 
     def d_step(self, step):
         a = self.a
-        b, chunk = a.batch, a.batch // a.batch_split
+        b = self.batch
+        chunk = b // a.batch_split
         z = torch.randn(b, a.latent_dim)
         pitch, yaw = self.poses(b)
         with torch.no_grad():  # the release renders D's fakes in batch_split chunks
@@ -151,13 +188,14 @@ class Bench:
                                        + L.pose_loss(pr, torch.cat([real_pitch, real_yaw], 1)))
         self.opt_d.zero_grad(set_to_none=True)
         loss.backward()
+        self.reduce(self.d_params)
         self.clip(self.d_params)
         self.opt_d.step()
         return loss.item()
 
     def g_step(self, step):
         a = self.a
-        b, split = a.batch, a.batch_split
+        b, split = self.batch, a.batch_split
         chunk = b // split
         r = a.resolution ** 2
         z_all = torch.randn(b, a.latent_dim)
@@ -186,6 +224,7 @@ class Bench:
         finally:
             for p in self.d_params:
                 p.requires_grad_(True)
+        self.reduce(self.g_params)
         self.clip(self.g_params)
         self.opt_g.step()
         self.ema_update()
@@ -220,30 +259,56 @@ class Bench:
         return t1 - t0, t2 - t1, t2 - t0
 
 
-def main():
-    a = parse()
-    torch.set_num_threads(a.threads)
-    torch.set_default_device(a.device)
-    bench = Bench(a)
-    samples = {"step": [], "d_step": [], "g_step": []}
+def measure(a, rank=0):
+    """Warm-up and timed steps; returns the printed JSON's fields."""
+    bench = Bench(a, rank)
+    samples = {"step": [], "d_step": [], "g_step": [], "allreduce": []}
+    say = (lambda m: print(m, file=sys.stderr)) if rank == 0 else (lambda m: None)
     for i in range(a.warmup):
+        if a.world > 1:
+            dist.barrier()
         _, _, s = bench.step(i)
-        print(f"reference warm-up step {i}: {s:.2f} s", file=sys.stderr)
+        say(f"reference warm-up step {i}: {s:.2f} s")
     # Timed steps at indices where R1 is due (every step when r1_interval is 1).
     first = -(-a.warmup // a.r1_interval) * a.r1_interval
     for i in range(a.steps):
         idx = first + i * a.r1_interval
+        if a.world > 1:
+            dist.barrier()
+        comm = bench.comm
         d, g, s = bench.step(idx)
         samples["d_step"].append(d)
         samples["g_step"].append(g)
         samples["step"].append(s)
-        print(f"reference step {idx}: {s:.2f} s (D {d:.2f} s, G {g:.2f} s)", file=sys.stderr)
+        samples["allreduce"].append(bench.comm - comm)
+        say(f"reference step {idx}: {s:.2f} s (D {d:.2f} s, G {g:.2f} s)")
     med = {k: statistics.median(v) for k, v in samples.items()}
-    print(json.dumps(dict(implementation="PyTorch reference", torch=torch.__version__, threads=a.threads,
-                          median_s=med, samples_s=samples,
-                          peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                          peak_gpu_mb=torch.cuda.max_memory_allocated() / 2**20 if bench.cuda else None,
-                          images_per_second=a.batch / med["step"])))
+    return dict(implementation="PyTorch reference", torch=torch.__version__, threads=a.threads, world=a.world,
+                median_s=med, samples_s=samples,
+                peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                peak_gpu_mb=torch.cuda.max_memory_allocated() / 2**20 if bench.cuda else None,
+                images_per_second=a.batch / med["step"])
+
+
+def rank_main(rank, a, port, q):
+    torch.set_num_threads(a.threads)
+    torch.set_default_device(a.device)
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=a.world)
+    out = measure(a, rank)
+    if rank == 0:
+        q.put(out)
+    dist.destroy_process_group()
+
+
+def main():
+    a = parse()
+    if a.world == 1:
+        torch.set_num_threads(a.threads)
+        torch.set_default_device(a.device)
+        print(json.dumps(measure(a)))
+        return
+    out = dist_ref.spawn(a.world, rank_main, a)
+    print(json.dumps(out))
 
 
 if __name__ == "__main__":

@@ -6,14 +6,13 @@
 //!
 //! The command starts `--world` copies of itself as the ranks (`--worker`, with torchrun's
 //! variables), then the reference, and reads rank 0's timings from each.
-use super::{median, run_reference, write_json};
+use super::{median, run_reference, spawn_ranks, write_json};
 use crate::dist::{Launch, ProcessGroup, Reduce};
 use crate::plot::{draw_panels, Panel, Series};
 use crate::train::TrainConfig;
 use crate::{Error, Generator, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use tch::{nn, Device, Kind, Tensor};
 
@@ -103,40 +102,16 @@ fn worker(a: &Options, shapes: &[Vec<i64>]) -> Result<()> {
 
 /// Starts the ranks and reads rank 0's timings.
 fn ranks(a: &Options) -> Result<Timings> {
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map_err(|e| Error::Distributed(format!("no free port on loopback: {e}")))?
-        .port();
-    let exe = std::env::current_exe().map_err(|e| Error::Invalid(format!("cannot find this program: {e}")))?;
     let kib: Vec<String> = a.bucket_kib.iter().map(usize::to_string).collect();
-    let children: Vec<_> = (0..a.world)
-        .map(|rank| {
-            Command::new(&exe)
-                .args(["allreduce", "--worker", "--config"])
-                .arg(&a.config)
-                .args(["--bucket-kib", &kib.join(","), "--repeats", &a.repeats.to_string()])
-                .args(["--warmup", &a.warmup.to_string()])
-                .env("RANK", rank.to_string())
-                .env("WORLD_SIZE", a.world.to_string())
-                .env("MASTER_ADDR", "127.0.0.1")
-                .env("MASTER_PORT", port.to_string())
-                .stdout(Stdio::piped())
-                .stderr(Stdio::inherit())
-                .spawn()
-                .map_err(|e| Error::Invalid(format!("cannot start rank {rank}: {e}")))
-        })
-        .collect::<Result<_>>()?;
-    let mut timings = None;
-    for (rank, child) in children.into_iter().enumerate() {
-        let out = child.wait_with_output().map_err(|e| Error::Distributed(format!("rank {rank}: {e}")))?;
-        if !out.status.success() {
-            return Err(Error::Distributed(format!("rank {rank} failed ({}); its messages are above", out.status)));
-        }
-        if rank == 0 {
-            timings = Some(serde_json::from_slice(&out.stdout)?);
-        }
+    let mut args: Vec<std::ffi::OsString> = vec!["allreduce".into(), "--worker".into(), "--config".into()];
+    args.push(a.config.clone().into());
+    for (flag, value) in
+        [("--bucket-kib", kib.join(",")), ("--repeats", a.repeats.to_string()), ("--warmup", a.warmup.to_string())]
+    {
+        args.extend([flag.into(), value.into()]);
     }
-    timings.ok_or_else(|| Error::Distributed("rank 0 printed no timings".into()))
+    let out = spawn_ranks(a.world, &args)?;
+    serde_json::from_slice(&out).map_err(|e| Error::Distributed(format!("rank 0 printed no timings: {e}")))
 }
 
 /// Runs the benchmark (or, with `--worker`, one rank of it: then no report).
@@ -187,7 +162,8 @@ pub fn run(a: &Options) -> Result<Option<Report>> {
         ratio,
     };
     for (i, kib) in report.bucket_kib.iter().enumerate() {
-        let t = report.torch.as_ref().map_or(String::new(), |t| format!(", torch.distributed {:.2} ms", t.median_ms[i]));
+        let t =
+            report.torch.as_ref().map_or(String::new(), |t| format!(", torch.distributed {:.2} ms", t.median_ms[i]));
         println!("bucket {kib:>6} KiB: gdrf {:.2} ms{t}", report.gdrf.median_ms[i]);
     }
     report.write(&a.out_dir)?;
@@ -198,12 +174,14 @@ impl Report {
     fn write(&self, out_dir: &Path) -> Result<()> {
         std::fs::create_dir_all(out_dir).map_err(|e| Error::Io { path: out_dir.to_path_buf(), err: e })?;
         let stem = out_dir.join(format!("allreduce-{}ranks", self.world));
-        let points = |t: &Timings| self.bucket_kib.iter().zip(&t.median_ms).map(|(&k, &m)| ((k as f64).log2(), m)).collect();
+        let points =
+            |t: &Timings| self.bucket_kib.iter().zip(&t.median_ms).map(|(&k, &m)| ((k as f64).log2(), m)).collect();
         let mut series = vec![Series { name: "gdrf (c10d bridge)".into(), points: points(&self.gdrf) }];
         if let Some(t) = &self.torch {
             series.push(Series { name: "torch.distributed".into(), points: points(t) });
         }
-        let title = format!("all-reduce of {:.1} MB, {} ranks: ms vs log2 bucket KiB", self.bytes as f64 / 1e6, self.world);
+        let title =
+            format!("all-reduce of {:.1} MB, {} ranks: ms vs log2 bucket KiB", self.bytes as f64 / 1e6, self.world);
         let panel = Panel { title, series, log_y: false };
         crate::io::save_png(&PathBuf::from(format!("{}.png", stem.display())), &draw_panels(&[panel], 1, 520, 300))?;
         write_json(&PathBuf::from(format!("{}.json", stem.display())), self)?;

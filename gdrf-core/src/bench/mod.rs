@@ -62,6 +62,43 @@ pub fn run_reference(script: &str, args: &[String]) -> Result<serde_json::Value>
     serde_json::from_slice(&out.stdout).map_err(|e| reference(format!("printed no JSON: {e}")))
 }
 
+/// Starts `world` ranks of this program with arguments `args` and torchrun's variables
+/// (rendezvous on a free loopback port), waits for them and returns rank 0's standard
+/// output. Rank 0's messages reach ours; another rank's are shown only when it fails.
+pub fn spawn_ranks(world: usize, args: &[std::ffi::OsString]) -> Result<Vec<u8>> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map_err(|e| Error::Distributed(format!("no free port on loopback: {e}")))?
+        .port();
+    let exe = std::env::current_exe().map_err(|e| Error::Invalid(format!("cannot find this program: {e}")))?;
+    let children: Vec<_> = (0..world)
+        .map(|rank| {
+            Command::new(&exe)
+                .args(args)
+                .env("RANK", rank.to_string())
+                .env("WORLD_SIZE", world.to_string())
+                .env("MASTER_ADDR", "127.0.0.1")
+                .env("MASTER_PORT", port.to_string())
+                .stdout(Stdio::piped())
+                .stderr(if rank == 0 { Stdio::inherit() } else { Stdio::piped() })
+                .spawn()
+                .map_err(|e| Error::Invalid(format!("cannot start rank {rank}: {e}")))
+        })
+        .collect::<Result<_>>()?;
+    let mut first = Vec::new();
+    for (rank, child) in children.into_iter().enumerate() {
+        let out = child.wait_with_output().map_err(|e| Error::Distributed(format!("rank {rank}: {e}")))?;
+        if !out.status.success() {
+            let said = String::from_utf8_lossy(&out.stderr);
+            return Err(Error::Distributed(format!("rank {rank} failed ({}); {}", out.status, said.trim())));
+        }
+        if rank == 0 {
+            first = out.stdout;
+        }
+    }
+    Ok(first)
+}
+
 /// Runs `scripts/<script> ARGS…` (a plotting script) with the project's Python.
 pub fn run_script(script: &str, args: &[&Path]) -> Result<()> {
     let plot = |reason: String| Error::Subprocess { program: format!("scripts/{script}"), reason };

@@ -1,19 +1,22 @@
 //! `gdrf-bench step`: full training steps of a training config's stage, gdrf's
 //! [`Trainer::step`] against the PyTorch reference (scripts/reference/bench_step.py) at the
-//! same sizes.
-use super::{median, peak_rss_mb, reference_run, Run, Timings};
+//! same sizes. With `--nproc N`, data-parallel scaling on the CPU: one process of N threads
+//! against N ranks of one thread each (Gloo over loopback), for both; the command starts
+//! the ranks as copies of itself (`--worker`, with torchrun's variables).
+use super::{median, peak_rss_mb, reference_run, spawn_ranks, Run, Timings};
 use crate::data::layouts::Layout;
 use crate::data::synth::SynthOptions;
 use crate::data::SplitChoice;
 use crate::disc::DiscConfig;
+use crate::dist::{Launch, ProcessGroup};
 use crate::loss::LossConfig;
 use crate::paths::TempDir;
 use crate::train::config::{EmaConfig, OptimConfig, Precision};
 use crate::train::{StepReport, TrainConfig, Trainer};
-use crate::{device, CameraConfig, Error, GeneratorConfig, Result};
+use crate::{CameraConfig, Error, GeneratorConfig, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// The flags of `gdrf-bench step`.
 #[derive(clap::Args)]
@@ -47,9 +50,18 @@ pub struct Options {
     /// Default: the config's.
     #[arg(long)]
     pub precision: Option<String>,
-    /// Folder for step-<config>-stage<I>-b<batch>[-<device>][-bf16].json and .png.
+    /// Data-parallel scaling on the CPU: time the step as N ranks of one thread each (the
+    /// global batch split among them, Gloo over loopback) beside one process of N threads,
+    /// gdrf's and the reference's (torch.distributed, gradients all-reduced as
+    /// DistributedDataParallel does). Writes …-nproc<N>.json.
+    #[arg(long, default_value_t = 1)]
+    pub nproc: usize,
+    /// Folder for step-<config>-stage<I>-b<batch>[-<device>][-bf16][-nproc<N>].json and .png.
     #[arg(long, default_value = "bench")]
     pub out_dir: PathBuf,
+    /// Run as one rank of --nproc (set by the command itself for the processes it starts).
+    #[arg(long, hide = true)]
+    pub worker: bool,
 }
 
 /// What the step benchmark ran: the stage's sizes, the timing protocol and the config's
@@ -83,11 +95,18 @@ pub struct Settings {
 }
 
 /// Runs gdrf and the reference, prints the table and writes
-/// step-<config>-stage<I>-b<batch>[-<device>][-bf16].json and .png into `--out-dir`.
-pub fn run(a: &Options) -> Result<Timings<Settings>> {
+/// step-<config>-stage<I>-b<batch>[-<device>][-bf16][-nproc<N>].json and .png into
+/// `--out-dir` (with `--worker`, one rank of `--nproc`: then no report).
+pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     let (config, stage, steps, warmup) = (&a.config, a.stage, a.steps, a.warmup);
     if steps == 0 {
         return Err(Error::Invalid("--steps must be at least 1".into()));
+    }
+    if a.worker {
+        return worker(a).map(|()| None);
+    }
+    if a.nproc == 0 || (a.nproc > 1 && a.device != "cpu") {
+        return Err(Error::Invalid("--nproc must be at least 1, and more than 1 only with --device cpu".into()));
     }
     let tmp = TempDir::new("bench-step")?;
     let (cfg, notes) = step_config(a, &tmp.0)?;
@@ -136,31 +155,80 @@ pub fn run(a: &Options) -> Result<Timings<Settings>> {
     if bf16 {
         ref_args.push("--bf16".into());
     }
-    let mut runs = vec![measure(cfg, &tmp.0.join("run"), warmup, steps)?];
-    if !a.no_reference {
-        runs.push(reference_run("bench_step.py", &ref_args)?);
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let n = a.nproc;
+    let mut runs = Vec::new();
+    if n == 1 {
+        runs.push(measure(cfg, &tmp.0.join("run"), warmup, steps, cores, None)?);
+        if !a.no_reference {
+            runs.push(reference_run("bench_step.py", &ref_args)?);
+        }
+    } else {
+        let mut alone = measure(cfg, &tmp.0.join("run"), warmup, steps, n, None)?;
+        alone.implementation = format!("gdrf, 1 process × {n} threads");
+        runs.push(alone);
+        eprintln!("running gdrf as {n} ranks of 1 thread …");
+        let mut ranks = ranks(a)?;
+        ranks.implementation = format!("gdrf, {n} ranks × 1 thread");
+        runs.push(ranks);
+        if !a.no_reference {
+            for (world, threads) in [(1, n), (n, 1)] {
+                let mut args = ref_args.clone();
+                args.extend([format!("--threads={threads}"), format!("--world={world}")]);
+                let mut r = reference_run("bench_step.py", &args)?;
+                r.implementation = if world == 1 {
+                    format!("PyTorch reference, 1 process × {n} threads")
+                } else {
+                    format!("PyTorch reference (torch.distributed), {n} ranks × 1 thread")
+                };
+                runs.push(r);
+            }
+        }
     }
     let per_second = |r: &Run| r.images_per_second.unwrap_or(f64::NAN);
     println!("{title}");
-    println!("{:<20}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
+    let w = runs.iter().map(|r| r.implementation.chars().count()).max().unwrap_or(0).max(20);
+    println!("{:<w$}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
     for r in &runs {
-        println!("{:<20}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
+        println!("{:<w$}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
     }
     if let [x, y] = &runs[..] {
         println!(
-            "{:<20}{:>15.2}×{:>11.2}×{:>11.2}×",
+            "{:<w$}{:>15.2}×{:>11.2}×{:>11.2}×",
             "reference/gdrf",
             y.median("step") / x.median("step"),
             per_second(y) / per_second(x),
             y.peak_rss_mb / x.peak_rss_mb
         );
     }
+    let mut title = title;
+    if n > 1 {
+        // Scaling efficiency: the ranks' throughput over one process's on the same cores.
+        let mut said = Vec::new();
+        for pair in runs.chunks(2) {
+            let (one, many) = (&pair[0], &pair[1]);
+            let efficiency = per_second(many) / per_second(one);
+            let share = many.median("allreduce") / many.median("step");
+            println!(
+                "{}: scaling efficiency {efficiency:.2}, all-reduce {:.0}% of the ranks' step",
+                many.implementation,
+                share * 100.0
+            );
+            said.push(format!(
+                "{} {efficiency:.2} ({:.0}% all-reduce)",
+                if said.is_empty() { "gdrf" } else { "reference" },
+                share * 100.0
+            ));
+        }
+        title = format!("{title}; {n} ranks × 1 thread vs 1 process × {n} threads, efficiency: {}", said.join(", "));
+    }
     let machine = if a.device == "cpu" {
         format!("{} CPU threads", runs[0].threads)
     } else {
         format!("{}, {} CPU threads", a.device, runs[0].threads)
     };
-    let doc = Timings { title, machine, settings: Some(settings), phases: vec!["step"], runs };
+    let phases = if n > 1 { vec!["step", "allreduce"] } else { vec!["step"] };
+    let doc = Timings { title, machine, settings: Some(settings), phases, runs };
     let mut name = format!("step-{stem}-stage{stage}-b{b}");
     if a.device != "cpu" {
         name += &format!("-{}", a.device.replace(':', ""));
@@ -168,8 +236,33 @@ pub fn run(a: &Options) -> Result<Timings<Settings>> {
     if bf16 {
         name += "-bf16";
     }
+    if n > 1 {
+        name += &format!("-nproc{n}");
+    }
     doc.write(&a.out_dir, &name)?;
-    Ok(doc)
+    Ok(Some(doc))
+}
+
+/// One rank of `--nproc`: the same stage and timing protocol on its share of the batch,
+/// one thread; rank 0 prints its [`Run`] as JSON.
+fn worker(a: &Options) -> Result<()> {
+    let launch = Launch::from_env()?;
+    let tmp = TempDir::new("bench-step-rank")?;
+    let (cfg, _) = step_config(a, &tmp.0)?;
+    let group = ProcessGroup::join(&launch, Duration::from_secs(600))?;
+    let run = measure(cfg, &tmp.0.join("run"), a.warmup, a.steps, 1, Some(group))?;
+    if launch.rank == 0 {
+        println!("{}", serde_json::to_string(&run)?);
+    }
+    Ok(())
+}
+
+/// Starts the `--nproc` ranks (this program with `--worker`) and reads rank 0's [`Run`].
+fn ranks(a: &Options) -> Result<Run> {
+    let mut args: Vec<_> = std::env::args_os().skip(1).collect();
+    args.push("--worker".into());
+    let out = spawn_ranks(a.nproc, &args)?;
+    serde_json::from_slice(&out).map_err(|e| Error::Distributed(format!("rank 0 printed no timings: {e}")))
 }
 
 /// The config of `gdrf-bench step`: stage `--stage` of the file as the only stage (batch
@@ -255,14 +348,27 @@ fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
     Ok((cfg, notes))
 }
 
-/// `warmup` untimed then `steps` timed training steps of gdrf. Timed steps run at step
-/// indices where R1 is due (the counter is moved up to the next multiple of
-/// `r1_interval`; a single stage has no fade-in, so nothing else depends on it).
-fn measure(cfg: TrainConfig, run_dir: &Path, warmup: usize, steps: usize) -> Result<Run> {
-    let threads = device::init_threads();
+/// `warmup` untimed then `steps` timed training steps of gdrf on `threads` threads, alone
+/// or as a rank of `group` (the ranks start each step together; the time in collectives
+/// is the `allreduce` phase). Timed steps run at step indices where R1 is due (the
+/// counter is moved up to the next multiple of `r1_interval`; a single stage has no
+/// fade-in, so nothing else depends on it).
+fn measure(
+    mut cfg: TrainConfig,
+    run_dir: &Path,
+    warmup: usize,
+    steps: usize,
+    threads: usize,
+    group: Option<ProcessGroup>,
+) -> Result<Run> {
+    tch::set_num_threads(threads as i32);
+    cfg.threads = threads;
     let mut trainer = Trainer::new(cfg, run_dir)?;
     let t0 = Instant::now();
     trainer.prepare_data(&|| {})?;
+    if let Some(g) = group {
+        trainer.join_group(g)?;
+    }
     let res = trainer.cfg.stages[0].resolution;
     let n = trainer.dataset(res)?.len();
     eprintln!("procedural dataset: {n} images at {res}² ({:.1} s)", t0.elapsed().as_secs_f64());
@@ -271,14 +377,18 @@ fn measure(cfg: TrainConfig, run_dir: &Path, warmup: usize, steps: usize) -> Res
         eprintln!("gdrf {what} {}: {:.2} s{bad}", r.step, r.seconds);
     };
     for _ in 0..warmup {
+        trainer.barrier()?;
         report(&trainer.step()?, "warm-up step");
     }
     let every = trainer.cfg.loss.r1_interval.max(1);
-    let mut samples = Vec::with_capacity(steps);
+    let (mut samples, mut comm) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
     for _ in 0..steps {
         let s = trainer.progress.step;
         trainer.progress.step = (s + every - 1) / every * every;
+        trainer.barrier()?;
+        let before = trainer.comm_seconds();
         let r = trainer.step()?;
+        comm.push(trainer.comm_seconds() - before);
         report(&r, "step");
         samples.push(r.seconds);
     }
@@ -287,8 +397,8 @@ fn measure(cfg: TrainConfig, run_dir: &Path, warmup: usize, steps: usize) -> Res
     Ok(Run {
         implementation: "gdrf (tch)".into(),
         threads,
-        median_s: [("step".to_string(), med)].into(),
-        samples_s: [("step".to_string(), samples)].into(),
+        median_s: [("step".to_string(), med), ("allreduce".to_string(), median(&comm))].into(),
+        samples_s: [("step".to_string(), samples), ("allreduce".to_string(), comm)].into(),
         peak_rss_mb: peak_rss_mb(),
         images_per_second: Some(b / med),
         other: Default::default(),

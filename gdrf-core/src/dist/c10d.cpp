@@ -3,8 +3,8 @@
 // tensors. Every C++ exception is caught and returned as a message: nothing aborts.
 //
 // Only exported, non-inline c10d entry points are called (constructors, collectives,
-// `wait`): the gloo headers this compiles against may be older than the gloo inside the
-// wheel, and types instantiated inline here could disagree with it in layout.
+// `wait`): the gloo headers this compiles against (third_party/gloo) need not be the very
+// gloo inside the wheel, and types instantiated inline here could disagree with it in layout.
 #include <torch/csrc/distributed/c10d/ProcessGroupGloo.hpp>
 #include <torch/csrc/distributed/c10d/TCPStore.hpp>
 

@@ -10,8 +10,7 @@
 //!   A peer that dies or never comes, or a collective past the timeout, is an error, never
 //!   an abort or a hang.
 //!
-//! A build without the gloo headers (scripts/setup.sh installs Debian's libgloo-dev) has no
-//! bridge: [`ProcessGroup::join`] then says so, and everything else runs in one process.
+//! The shim compiles against the wheel's c10d headers and gloo's (third_party/gloo).
 use crate::{Error, Result};
 use std::time::Duration;
 use tch::Tensor;
@@ -43,9 +42,10 @@ impl Launch {
     pub fn from_vars(var: impl Fn(&str) -> Option<String>) -> Result<Self> {
         let number = |name: &str, default: Option<usize>| -> Result<usize> {
             match var(name) {
-                Some(v) => v.trim().parse::<usize>().map_err(|_| {
-                    Error::Distributed(format!("{name} is '{v}', expected a whole number ≥ 0"))
-                }),
+                Some(v) => v
+                    .trim()
+                    .parse::<usize>()
+                    .map_err(|_| Error::Distributed(format!("{name} is '{v}', expected a whole number ≥ 0"))),
                 None => default.ok_or_else(|| {
                     Error::Distributed(format!("{name} is not set (torchrun and `gdrf-train --nproc` set it)"))
                 }),
@@ -86,6 +86,9 @@ pub struct ProcessGroup {
     raw: ffi::Raw,
     rank: usize,
     world: usize,
+    timeout: Duration,
+    /// Seconds spent in collectives so far (waiting for slower ranks included).
+    busy: std::cell::Cell<f64>,
 }
 
 // The c10d process group may be used from any one thread at a time.
@@ -106,7 +109,7 @@ impl ProcessGroup {
                 launch.rank, launch.world, launch.master_addr, launch.master_port, timeout
             ))
         })?;
-        Ok(Self { raw, rank: launch.rank, world: launch.world })
+        Ok(Self { raw, rank: launch.rank, world: launch.world, timeout, busy: Default::default() })
     }
 
     pub fn rank(&self) -> usize {
@@ -115,6 +118,20 @@ impl ProcessGroup {
 
     pub fn world(&self) -> usize {
         self.world
+    }
+
+    /// Seconds this process has spent in the group's collectives (the step benchmark's
+    /// all-reduce share); a collective's wait for slower ranks counts too.
+    pub fn comm_seconds(&self) -> f64 {
+        self.busy.get()
+    }
+
+    /// Runs one collective `f`, adding its time to [`ProcessGroup::comm_seconds`].
+    fn timed<T>(&self, f: impl FnOnce() -> T) -> T {
+        let start = std::time::Instant::now();
+        let out = f();
+        self.busy.set(self.busy.get() + start.elapsed().as_secs_f64());
+        out
     }
 
     /// Sums (or averages) each of `tensors` over all ranks, in place. Consecutive tensors of
@@ -126,7 +143,7 @@ impl ProcessGroup {
         }
         let world = self.world as f64;
         self.bucketed(tensors, bucket_bytes, |bucket| {
-            ffi::all_reduce_sum(&self.raw, bucket).map_err(|why| self.failed("all-reduce", why))?;
+            self.timed(|| ffi::all_reduce_sum(&self.raw, bucket)).map_err(|why| self.failed("all-reduce", why))?;
             if op == Reduce::Average {
                 let _ = bucket.divide_scalar_(world);
             }
@@ -141,22 +158,39 @@ impl ProcessGroup {
             return Err(Error::Invalid(format!("broadcast from rank {root} of a group of {}", self.world)));
         }
         self.bucketed(tensors, bucket_bytes, |bucket| {
-            ffi::broadcast(&self.raw, bucket, root).map_err(|why| self.failed("broadcast", why))
+            self.timed(|| ffi::broadcast(&self.raw, bucket, root)).map_err(|why| self.failed("broadcast", why))
         })
     }
 
     /// Returns when every rank has called it.
     pub fn barrier(&self) -> Result<()> {
-        ffi::barrier(&self.raw).map_err(|why| self.failed("barrier", why))
+        self.timed(|| ffi::barrier(&self.raw)).map_err(|why| self.failed("barrier", why))
     }
 
+    /// A failed collective, with what Gloo's message means for the run: a peer gone (its
+    /// connection closed) or silent past the timeout. Gloo names the peer's address only;
+    /// in a group of two the peer is the other rank.
     fn failed(&self, what: &str, why: String) -> Error {
-        Error::Distributed(format!("{what} on rank {} of {}: {why}", self.rank, self.world))
+        let peer = if self.world == 2 { format!("rank {}", 1 - self.rank) } else { "another rank".to_string() };
+        let gone = ["Connection reset", "Connection closed", "Broken pipe", "Connection refused", "EOF"];
+        let meaning = if why.contains("Timed out") {
+            format!("{peer} did not answer within the timeout of {:.0?} (stopped, hung or dead): ", self.timeout)
+        } else if gone.iter().any(|g| why.contains(g)) {
+            format!("{peer} is gone (its process died or its connection broke): ")
+        } else {
+            String::new()
+        };
+        Error::Distributed(format!("{what} on rank {} of {} failed: {meaning}{why}", self.rank, self.world))
     }
 
     /// Runs `f` on each bucket of `tensors` (flattened, concatenated, contiguous), then
     /// copies the bucket's values back.
-    fn bucketed(&self, tensors: &[Tensor], bucket_bytes: usize, mut f: impl FnMut(&mut Tensor) -> Result<()>) -> Result<()> {
+    fn bucketed(
+        &self,
+        tensors: &[Tensor],
+        bucket_bytes: usize,
+        mut f: impl FnMut(&mut Tensor) -> Result<()>,
+    ) -> Result<()> {
         let bytes = |t: &Tensor| t.numel() * t.kind().elt_size_in_bytes();
         tch::no_grad(|| {
             let mut start = 0;
@@ -193,7 +227,6 @@ impl Drop for ProcessGroup {
     }
 }
 
-#[cfg(gdrf_c10d)]
 mod ffi {
     use super::Launch;
     use std::ffi::{c_char, c_int, c_long, c_void, CString};
@@ -283,33 +316,6 @@ mod ffi {
             g.0 = std::ptr::null_mut();
         }
     }
-}
-
-#[cfg(not(gdrf_c10d))]
-mod ffi {
-    use super::Launch;
-    use std::time::Duration;
-    use tch::Tensor;
-
-    #[derive(Debug)]
-    pub struct Raw;
-
-    const MISSING: &str = "this build of gdrf has no c10d bridge: the gloo headers were missing when it was built \
-                           (scripts/setup.sh installs libgloo-dev; then rebuild)";
-
-    pub fn new(_: &Launch, _: &str, _: Duration) -> Result<Raw, String> {
-        Err(MISSING.into())
-    }
-    pub fn all_reduce_sum(_: &Raw, _: &mut Tensor) -> Result<(), String> {
-        Err(MISSING.into())
-    }
-    pub fn broadcast(_: &Raw, _: &mut Tensor, _: usize) -> Result<(), String> {
-        Err(MISSING.into())
-    }
-    pub fn barrier(_: &Raw) -> Result<(), String> {
-        Err(MISSING.into())
-    }
-    pub fn free(_: &mut Raw) {}
 }
 
 #[cfg(test)]

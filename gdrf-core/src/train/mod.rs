@@ -10,16 +10,17 @@
 pub mod config;
 pub mod curve;
 pub mod optim;
+mod parallel;
 pub mod pass;
 pub mod run;
 pub mod samples;
-mod parallel;
 mod state;
 mod step;
 
 pub use config::{Stage, StepKind, TrainConfig};
 pub use pass::{
     discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, patch_gradients, FakeBatch,
+    Judged,
 };
 
 use crate::data::Dataset;

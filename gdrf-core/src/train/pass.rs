@@ -36,27 +36,36 @@ pub fn generator_pass(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let (img, parts) = renderer.render_regions(fake.latents, fake.poses, fake.resolution, fake.regions, fake.noise)?;
-    generator_judgement(renderer.generator, disc, &img, &parts, fake, reg_rays, at, cfg)
+    let judged = Judged { img: &img, poses: fake.poses, z: fake.z };
+    generator_judgement(renderer.generator, disc, &judged, (fake.latents, &parts), reg_rays, at, cfg)
 }
 
-/// The generator's loss on images already rendered with their graph (`img: (B, 3, S, S)`
-/// and the rays `parts` it was composited from, drawn from `fake`): `disc`'s verdict, the
-/// image terms and the regularisers through `generator`.
-#[allow(clippy::too_many_arguments)]
+/// The images the discriminator judges, with the poses they are seen from and their codes
+/// (for the latent-prediction and mode-seeking terms): the images just rendered, or, on
+/// ranks that judge the global batch, that batch holding them (`Trainer::judged_rows`).
+pub struct Judged<'a> {
+    /// `(B, 3, S, S)`.
+    pub img: &'a Tensor,
+    pub poses: &'a Poses,
+    pub z: Option<&'a Tensor>,
+}
+
+/// The generator's loss on images already rendered with their graph: `disc`'s verdict on
+/// `judged` and the image terms, and the regularisers through `generator` on `own`, the
+/// latents and the rays (`parts`) of the images this process rendered.
 pub fn generator_judgement(
     generator: &Generator,
     disc: &dyn Judge,
-    img: &Tensor,
-    parts: &[RenderedRays],
-    fake: &FakeBatch,
+    judged: &Judged,
+    (latents, parts): (&Latents, &[RenderedRays]),
     reg_rays: Option<&Tensor>,
     at: Schedule,
     cfg: &LossConfig,
 ) -> Result<Losses> {
-    let d = disc.judge(img, at.alpha)?;
+    let d = disc.judge(judged.img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
-    let reg = regularisers(generator, &fake.latents.shape, &samples, cfg.reg.variant);
-    generator_loss(&d, img, &fake.poses.stacked(), fake.z, reg, at, cfg)
+    let reg = regularisers(generator, &latents.shape, &samples, cfg.reg.variant);
+    generator_loss(&d, judged.img, &judged.poses.stacked(), judged.z, reg, at, cfg)
 }
 
 /// The discriminator's loss: fakes rendered without gradients, then
@@ -97,17 +106,23 @@ pub fn discriminator_judgement(
     discriminator_loss(&dr, &real, real_poses, &df, &fake_poses.stacked(), z, at, cfg)
 }
 
+/// Puts a rank's images into the batch the discriminator judges (`Trainer::judged_rows`).
+pub type JudgedView<'a> = &'a dyn Fn(&Tensor) -> Result<Tensor>;
+
 /// The release's two-pass patch step for one chunk of the generator's batch (codes `z`,
 /// drawn at `poses` with `noise`): render without gradients, take the judge's gradient with
 /// respect to the image alone, then re-render each of `regions` bands with gradients at the
 /// very sample depths of the first pass and backpropagate its slice of that gradient; the
-/// regularisers likewise. Leaves `1/split` of the chunk's gradient (times `fault`: NaN to
+/// regularisers likewise. The judge sees `view` of the images (the images themselves, or
+/// the global batch holding them: `Trainer::judged_rows`), seen from `judged_poses` with
+/// codes `judged_z`. Leaves `1/split` of the chunk's gradient (times `fault`: NaN to
 /// inject a non-finite step) in the generator and returns the chunk's losses.
 #[allow(clippy::too_many_arguments)]
 pub fn patch_gradients(
     renderer: &Renderer,
     judge: &dyn Judge,
     (z, poses, noise): (&Tensor, &Poses, &Noise),
+    (view, judged_poses, judged_z): (JudgedView, &Poses, &Tensor),
     (res, regions): (i64, i64),
     reg_rays: &Tensor,
     at: Schedule,
@@ -115,7 +130,6 @@ pub fn patch_gradients(
     (split, fault): (f64, f64),
 ) -> Result<Losses> {
     let gen = renderer.generator;
-    let target = poses.stacked();
     // The release's two-pass patch step: render without gradients, take D's gradient
     // w.r.t. the image alone, then re-render each band with gradients at the very
     // sample depths of the first pass and backpropagate its slice of that gradient.
@@ -124,8 +138,9 @@ pub fn patch_gradients(
         renderer.render_regions(&lat, poses, res, regions, noise)
     })?;
     let img = img.detach().set_requires_grad(true);
-    let d = judge.judge(&img, at.alpha)?;
-    let mut adv = generator_image_terms(&d, &img, &target, Some(z), at, cfg)?;
+    let seen = view(&img)?;
+    let d = judge.judge(&seen, at.alpha)?;
+    let mut adv = generator_image_terms(&d, &seen, &judged_poses.stacked(), Some(judged_z), at, cfg)?;
     adv.total = adv.total.g_mul_scalar(fault);
     let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
     // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.

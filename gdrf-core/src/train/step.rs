@@ -2,9 +2,9 @@
 //! generator's updates (two renders, or one render shared by both players), the coverage
 //! term, and the guarded application of each update.
 use super::optim::{clip_grads, grad_norm, zero_grads};
-use super::{discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, patch_gradients};
 use super::parallel::GRADIENT_BUCKET_BYTES;
-use super::{FakeBatch, Stage, StepKind, StepReport, Trainer};
+use super::{discriminator_judgement, generator_judgement, patch_gradients, Judged};
+use super::{Stage, StepKind, StepReport, Trainer};
 use crate::camera::Poses;
 use crate::data::{self, Dataset};
 use crate::disc::augment::AugmentedJudge;
@@ -81,7 +81,8 @@ impl Trainer {
         let at = Schedule { step, alpha };
         let (b, res) = (stage.batch_size, stage.resolution);
 
-        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let real_all = self.real_batch(&stage, step)?;
+        let (real, real_poses) = self.judged_real(&real_all);
         let real_poses = real_poses.as_ref();
         let (d, g) = if g_lr <= 0.0 {
             // A discriminator-only stage: no generator render, no gradient, no EMA update.
@@ -89,10 +90,10 @@ impl Trainer {
             (d, Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false })
         } else if self.cfg.step == StepKind::OneRender {
             let (d, losses) = self.one_render_gradients(&stage, at, &real, real_poses, d_lr)?;
-            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, Some(losses))?)
+            (d, self.generator_step(&stage, at, g_lr, &real_all, Some(losses))?)
         } else {
             let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
-            (d, self.generator_step(&stage, at, g_lr, &real, real_poses, None)?)
+            (d, self.generator_step(&stage, at, g_lr, &real_all, None)?)
         };
 
         let p = &mut self.progress;
@@ -132,9 +133,9 @@ impl Trainer {
         Ok(report)
     }
 
-    /// The real images of `step` at `stage`'s resolution, and their poses where known (the
-    /// next `batch_size` positions of the epoch permutations; the counter moves on in
-    /// [`Trainer::step`]).
+    /// The real images of `step`'s global batch at `stage`'s resolution, and their poses
+    /// where known (the next `batch_size` positions of the epoch permutations; the counter
+    /// moves on in [`Trainer::step`]).
     fn real_batch(&mut self, stage: &Stage, step: i64) -> Result<(Tensor, Option<Tensor>)> {
         let (b, res) = (stage.batch_size, stage.resolution);
         let n_real = self.dataset(res)?.len() as i64;
@@ -142,12 +143,18 @@ impl Trainer {
         let ds = &self.datasets[&res];
         let flips: Option<Vec<bool>> =
             ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
-        // Drawn for the global batch, then this rank's rows: the same images as one process.
-        let (first, n) = self.shard(b);
-        let rows = first as usize..(first + n) as usize;
-        let (idx, flips) = (&idx[rows.clone()], flips.as_ref().map(|f| &f[rows]));
-        let (real, real_poses) = ds.batch(idx, flips)?;
+        let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
         Ok((real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))))
+    }
+
+    /// The real images the discriminator judges, of the global batch `real`: all of them
+    /// where every rank judges the global batch, else this rank's rows.
+    fn judged_real(&self, (real, poses): &(Tensor, Option<Tensor>)) -> (Tensor, Option<Tensor>) {
+        if self.judges_globally() {
+            (real.shallow_clone(), poses.as_ref().map(Tensor::shallow_clone))
+        } else {
+            (self.own_rows(real, 1), poses.as_ref().map(|p| self.own_rows(p, 1)))
+        }
     }
 
     /// The live generator's renderer with sampling config `rc`, at the configured precision.
@@ -157,9 +164,9 @@ impl Trainer {
         Ok(r)
     }
 
-    /// One player's fake batch of `stage` at `step`: codes `(B, latent)`, poses and
-    /// renderer noise, from the draws `[codes, poses, jitter, importance]`.
-    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 4]) -> (Tensor, Poses, Noise) {
+    /// One player's fake batch of `stage` at `step` ([`Draws`]), from the draws
+    /// `[codes, poses, jitter, importance]`.
+    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 4]) -> Draws {
         let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
         let [codes, poses, jitter, importance] = purposes;
         let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
@@ -173,7 +180,12 @@ impl Trainer {
         let (first, n) = self.shard(b);
         let rows = |t: &Tensor| t.narrow(0, first, n);
         let noise = Noise { jitter: noise.jitter.as_ref().map(rows), importance: noise.importance.as_ref().map(rows) };
-        (rows(&z), poses.narrow(first, n), noise)
+        let (judged_z, judged_poses) = if self.judges_globally() {
+            (z.shallow_clone(), poses.narrow(0, b))
+        } else {
+            (rows(&z), poses.narrow(first, n))
+        };
+        Draws { z: rows(&z), poses: poses.narrow(first, n), noise, judged_z, judged_poses }
     }
 
     /// The discriminator behind the configured augmentation (`[discriminator] augment`),
@@ -193,42 +205,56 @@ impl Trainer {
         lr: f64,
     ) -> Result<Update> {
         let purposes = [Purpose::DiscCodes, Purpose::DiscPoses, Purpose::DiscJitter, Purpose::DiscImportance];
-        let (z, poses, noise) = self.fake_draws(stage, at.step, purposes);
-        self.discriminator_step_on(stage, at, real, real_poses, (&z, &poses, &noise), lr)
+        let draws = self.fake_draws(stage, at.step, purposes);
+        self.discriminator_step_on(stage, at, real, real_poses, &draws, lr)
     }
 
-    /// The release's discriminator step on fakes of the codes, poses and noise `draws`.
+    /// The release's discriminator step on fakes of `draws`.
     fn discriminator_step_on(
         &mut self,
         stage: &Stage,
         at: Schedule,
         real: &Tensor,
         real_poses: Option<&Tensor>,
-        (z, poses, noise): (&Tensor, &Poses, &Noise),
+        draws: &Draws,
         lr: f64,
     ) -> Result<Update> {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
-        let lat = tch::no_grad(|| self.generator.latents(z, z, None))?;
-        let fake =
-            FakeBatch { latents: &lat, poses, z: Some(z), resolution: stage.resolution, regions: stage.regions, noise };
+        let Draws { z, poses, noise, .. } = draws;
+        let fakes = tch::no_grad(|| {
+            let lat = self.generator.latents(z, z, None)?;
+            renderer.render_regions(&lat, poses, stage.resolution, stage.regions, noise)
+        })?
+        .0;
+        let fakes = self.judged_rows(&fakes)?;
         let augmented = self.augmented(at.step, Purpose::DiscAugment);
         let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
-        let losses = discriminator_pass(&renderer, judge, real, real_poses, &fake, at, &self.cfg.loss)?;
+        let losses = discriminator_judgement(
+            judge,
+            real,
+            real_poses,
+            &fakes,
+            &draws.judged_poses,
+            Some(&draws.judged_z),
+            at,
+            &self.cfg.loss,
+        )?;
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
         losses.total.backward();
         self.apply(Net::D, &losses, lr)
     }
 
+    /// The generator's update; `real` is the global batch's real images and poses (the
+    /// coverage term's targets).
     fn generator_step(
         &mut self,
         stage: &Stage,
         at: Schedule,
         lr: f64,
-        real: &Tensor,
-        real_poses: Option<&Tensor>,
+        (real, real_poses): &(Tensor, Option<Tensor>),
         rendered_once: Option<Losses>,
     ) -> Result<Update> {
         // The one-render step has already left its gradient in G.
@@ -237,7 +263,7 @@ impl Trainer {
             None => self.generator_gradients(stage, at)?,
         };
         if self.cfg.loss.coverage_weight > 0.0 {
-            let poses = real_poses.ok_or_else(|| {
+            let poses = real_poses.as_ref().ok_or_else(|| {
                 Error::Config(
                     "loss.coverage_weight needs the real images' poses; the dataset has none (see data.poses)".into(),
                 )
@@ -250,7 +276,8 @@ impl Trainer {
     }
 
     /// The coverage term's gradient, left in G (see [`crate::loss::coverage`]), with this
-    /// step's draws. Returns the MSE.
+    /// step's draws, on this rank's rows of the global batch `real` seen from `real_poses`
+    /// (a per-image term: the ranks' average is the global batch's). Returns the MSE.
     fn coverage_gradients(
         &mut self,
         stage: &Stage,
@@ -263,10 +290,11 @@ impl Trainer {
         let latent = self.cfg.generator.latent_dim as i64;
         let shape = [b, res * res, stage.num_steps as i64];
         let draws = CoverageDraws {
-            candidates: self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]),
-            jitter: self.rng(step, Purpose::CoverageJitter).uniform(&shape),
-            importance: self.rng(step, Purpose::CoverageImportance).uniform(&shape),
+            candidates: self.own_rows(&self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]), k),
+            jitter: self.own_rows(&self.rng(step, Purpose::CoverageJitter).uniform(&shape), 1),
+            importance: self.own_rows(&self.rng(step, Purpose::CoverageImportance).uniform(&shape), 1),
         };
+        let (real, real_poses) = (self.own_rows(real, 1), self.own_rows(real_poses, 1));
         let rc = self.cfg.render_config(step);
         // The candidates, without gradients or random draws (no jitter, mid-point importance
         // samples).
@@ -274,8 +302,8 @@ impl Trainer {
         let renderers = (self.live_renderer(&rc_candidates)?, self.live_renderer(&rc)?);
         coverage_gradients(
             &renderers,
-            real,
-            real_poses,
+            &real,
+            &real_poses,
             &draws,
             (stage.num_steps as i64, stage.batch_split),
             &self.cfg.loss,
@@ -323,13 +351,14 @@ impl Trainer {
     fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
         let (b, res) = (stage.batch_size, stage.resolution);
         let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
-        let (z, poses, noise) = self.fake_draws(stage, step, purposes);
-        let (poses, noise) = if self.cfg.loss.diversity_at(step) > 0.0 {
+        let mut fakes = self.fake_draws(stage, step, purposes);
+        if self.cfg.loss.diversity_at(step) > 0.0 {
+            // Pairs (2i, 2i + 1) of the global batch; a rank's share starts at an even row.
             let pair = |t: &Option<Tensor>| t.as_ref().map(crate::camera::rows_in_pairs);
-            (poses.in_pairs(), Noise { jitter: pair(&noise.jitter), importance: pair(&noise.importance) })
-        } else {
-            (poses, noise)
-        };
+            fakes.noise = Noise { jitter: pair(&fakes.noise.jitter), importance: pair(&fakes.noise.importance) };
+            fakes.poses = fakes.poses.in_pairs();
+            fakes.judged_poses = fakes.judged_poses.in_pairs();
+        }
         let n_reg = reg_ray_count(res * res, &self.cfg.loss.reg);
         let (first, n) = self.shard(b);
         let reg_rays =
@@ -337,8 +366,11 @@ impl Trainer {
                 .view([b, n_reg])
                 .narrow(0, first, n)
                 .to_device(self.device);
-        let inject = self.cfg.debug.inject_nonfinite_steps.contains(&step) && self.injected.insert(step);
-        GenDraws { z, poses, noise, reg_rays, inject }
+        let debug = &self.cfg.debug;
+        let on_this_rank =
+            debug.inject_nonfinite_ranks.is_empty() || debug.inject_nonfinite_ranks.contains(&self.rank_of().0);
+        let inject = debug.inject_nonfinite_steps.contains(&step) && on_this_rank && self.injected.insert(step);
+        GenDraws { fakes, reg_rays, inject }
     }
 
     /// The one-render step ([`StepKind::OneRender`]) up to the generator's update: renders
@@ -363,13 +395,14 @@ impl Trainer {
             (0..split)
                 .map(|c| {
                     let d = draws.chunk(c, split);
-                    let lat = self.generator.latents(&d.z, &d.z, None)?;
-                    let (img, parts) = renderer.render_regions(&lat, &d.poses, stage.resolution, 1, &d.noise)?;
+                    let f = &d.fakes;
+                    let lat = self.generator.latents(&f.z, &f.z, None)?;
+                    let (img, parts) = renderer.render_regions(&lat, &f.poses, stage.resolution, 1, &f.noise)?;
                     Ok((d, lat, img, parts))
                 })
                 .collect::<Result<Vec<_>>>()?
         };
-        let fakes = Tensor::cat(&rendered.iter().map(|r| r.2.detach()).collect::<Vec<_>>(), 0);
+        let fakes = self.judged_rows(&Tensor::cat(&rendered.iter().map(|r| r.2.detach()).collect::<Vec<_>>(), 0))?;
         let d = {
             let augmented = self.augmented(at.step, Purpose::DiscAugment);
             let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
@@ -378,8 +411,8 @@ impl Trainer {
                 real,
                 real_poses,
                 &fakes,
-                &draws.poses,
-                Some(&draws.z),
+                &draws.fakes.judged_poses,
+                Some(&draws.fakes.judged_z),
                 at,
                 &self.cfg.loss,
             )?;
@@ -395,20 +428,13 @@ impl Trainer {
         let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
         let result = (|| -> Result<()> {
             for (d, lat, img, parts) in &rendered {
-                let fake = FakeBatch {
-                    latents: lat,
-                    poses: &d.poses,
-                    z: Some(&d.z),
-                    resolution: stage.resolution,
-                    regions: 1,
-                    noise: &d.noise,
-                };
+                let img = self.judged_rows(img)?;
+                let judged = Judged { img: &img, poses: &d.fakes.judged_poses, z: Some(&d.fakes.judged_z) };
                 let mut losses = generator_judgement(
                     &self.generator,
                     judge,
-                    img,
-                    parts,
-                    &fake,
+                    &judged,
+                    (lat, parts),
                     Some(&d.reg_rays),
                     at,
                     &self.cfg.loss,
@@ -433,7 +459,7 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r))?;
         let (_, losses) =
             self.one_render_gradients(&stage, at, &real, real_poses.as_ref(), d_lr * self.progress.lr_scale)?;
         Ok(losses.values())
@@ -446,10 +472,10 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step)?;
+        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r))?;
         let draws = self.generator_draws(&stage, step);
         let lr = d_lr * self.progress.lr_scale;
-        self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), (&draws.z, &draws.poses, &draws.noise), lr)?;
+        self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), &draws.fakes, lr)?;
         Ok(())
     }
 
@@ -463,7 +489,7 @@ impl Trainer {
         draws: &GenDraws,
         split: f64,
     ) -> Result<Losses> {
-        let GenDraws { z, poses, noise, reg_rays, inject } = draws;
+        let GenDraws { fakes: Draws { z, poses, noise, judged_z, judged_poses }, reg_rays, inject } = draws;
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
@@ -472,13 +498,26 @@ impl Trainer {
         let fault = if *inject { f64::NAN } else { 1.0 };
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None)?;
-            let fake = FakeBatch { latents: &lat, poses, z: Some(z), resolution: res, regions: 1, noise };
-            let mut losses = generator_pass(&renderer, judge, &fake, Some(reg_rays), at, cfg)?;
+            let (img, parts) = renderer.render_regions(&lat, poses, res, 1, noise)?;
+            let img = self.judged_rows(&img)?;
+            let judged = Judged { img: &img, poses: judged_poses, z: Some(judged_z) };
+            let mut losses = generator_judgement(gen, judge, &judged, (&lat, &parts), Some(reg_rays), at, cfg)?;
             losses.total = losses.total.g_mul_scalar(fault);
             (&losses.total / split).backward();
             return Ok(losses);
         }
-        patch_gradients(&renderer, judge, (z, poses, noise), (res, stage.regions), reg_rays, at, cfg, (split, fault))
+        let view = |img: &Tensor| self.judged_rows(img);
+        patch_gradients(
+            &renderer,
+            judge,
+            (z, poses, noise),
+            (&view, judged_poses, judged_z),
+            (res, stage.regions),
+            reg_rays,
+            at,
+            cfg,
+            (split, fault),
+        )
     }
 
     /// Checks finiteness, clips and applies one network's update.
@@ -535,12 +574,21 @@ impl Trainer {
     }
 }
 
-/// The generator's random draws of one step ([`Trainer::generator_draws`]).
-struct GenDraws {
-    /// `(B, latent)`.
+/// One player's fake batch of a step ([`Trainer::fake_draws`]): this rank's codes
+/// `(n, latent)`, poses and renderer noise, and the codes and poses of the batch the
+/// discriminator judges (the global batch's where every rank judges it, else these:
+/// [`Trainer::judged_rows`]).
+struct Draws {
     z: Tensor,
     poses: Poses,
     noise: Noise,
+    judged_z: Tensor,
+    judged_poses: Poses,
+}
+
+/// The generator's random draws of one step ([`Trainer::generator_draws`]).
+struct GenDraws {
+    fakes: Draws,
     /// `(B, n)` rays of each image the regularisers are taken on.
     reg_rays: Tensor,
     /// A NaN is injected into this step's generator loss (`[debug]`).
@@ -548,16 +596,23 @@ struct GenDraws {
 }
 
 impl GenDraws {
-    /// Chunk `c` of `split` equal chunks of the batch.
+    /// Chunk `c` of `split` equal chunks of the batch (of the judged batch too: a batch
+    /// judged globally is never split, see [`Trainer::join_group`]).
     fn chunk(&self, c: i64, split: i64) -> GenDraws {
-        let len = self.z.size()[0] / split;
+        let f = &self.fakes;
+        let len = f.z.size()[0] / split;
         let sl = |t: &Tensor| t.narrow(0, c * len, len);
+        let judged_len = f.judged_z.size()[0] / split;
         GenDraws {
-            z: sl(&self.z),
-            poses: self.poses.narrow(c * len, len),
-            noise: Noise {
-                jitter: self.noise.jitter.as_ref().map(sl),
-                importance: self.noise.importance.as_ref().map(sl),
+            fakes: Draws {
+                z: sl(&f.z),
+                poses: f.poses.narrow(c * len, len),
+                noise: Noise {
+                    jitter: f.noise.jitter.as_ref().map(sl),
+                    importance: f.noise.importance.as_ref().map(sl),
+                },
+                judged_z: f.judged_z.narrow(0, c * judged_len, judged_len),
+                judged_poses: f.judged_poses.narrow(c * judged_len, judged_len),
             },
             reg_rays: sl(&self.reg_rays),
             inject: self.inject,

@@ -171,11 +171,13 @@ impl Default for GuardConfig {
 }
 
 /// Fault injection, to test the guard: the generator loss is multiplied by NaN at these
-/// steps (the first time each is reached; a replay after a rollback runs clean).
+/// steps (the first time each is reached; a replay after a rollback runs clean), on the
+/// ranks `inject_nonfinite_ranks` of a data-parallel run (empty: on every rank).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DebugConfig {
     pub inject_nonfinite_steps: Vec<i64>,
+    pub inject_nonfinite_ranks: Vec<usize>,
 }
 
 /// Network arithmetic. Integration always runs in float32 or wider.
