@@ -2,10 +2,10 @@
 //! test binary, joined through the c10d bridge over loopback) reach the same generator,
 //! EMA and discriminator weights and Adam moments (every tensor of a checkpoint) after a
 //! few steps as 1 process × batch 8, within float32 tolerance, and the two ranks stay
-//! identical replicas. Three settings: each rank judging
-//! its own rows (the release's step), and every rank judging the global batch (a
-//! minibatch-std discriminator, augmentation, mode-seeking pairs and a top-k that drops
-//! images from step 1 on), with the release's step in bands and with the one-render step.
+//! identical replicas. Three settings: each rank judging its own rows (the release's step,
+//! with the coverage term), and every rank judging the global batch (a minibatch-std
+//! discriminator, augmentation, mode-seeking pairs and a top-k that drops images from step
+//! 1 on), with the release's step in bands and with the one-render step.
 mod common;
 
 use common::TempDir;
@@ -29,7 +29,12 @@ fn config(dir: &Path, variant: &str) -> PathBuf {
     };
     // Top-k keeps ceil(0.99^(step / 0.05)·8) of 8 fakes: 7 at step 1, 6 at step 2 (of 4
     // per rank: 4 and 3, were each rank to pick its own).
-    let loss = if across { "[loss]\ndiversity_weight = 50.0\ntopk_interval = 0.05" } else { "" };
+    let loss = if across {
+        "[loss]\ndiversity_weight = 50.0\ntopk_interval = 0.05"
+    } else {
+        // The coverage term: per real image, its nearest of 4 candidate codes.
+        "[loss]\ncoverage_weight = 1.0\ncoverage_candidates = 4"
+    };
     let text = common::tiny_training_toml(
         &format!("seed = 3\nthreads = 1\n{top}"),
         "total_steps = 100\nlog_interval = 1\ncheckpoint_interval = 1000\nsample_interval = 0",
