@@ -365,3 +365,37 @@ fn a_non_finite_step_on_one_rank_is_skipped_on_both() {
         }
     }
 }
+
+/// `configs/chairs-tiny.toml` trains as two ranks (`--nproc 2`), through both of its stages:
+/// the stage switch is moved to step 1, every step logged and the dataset cut to 64
+/// images, nothing else.
+#[test]
+fn chairs_tiny_trains_as_two_ranks_through_both_stages() {
+    let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = TempDir::new("cli-nproc-tiny").unwrap();
+    let text = std::fs::read_to_string(common::repo_root().join("configs/chairs-tiny.toml")).unwrap();
+    let edited = text
+        .replace("path = \"../data/chairs-64\"", "path = \"data\"")
+        .replace("count = 10000", "count = 64")
+        .replace("from_step = 8000", "from_step = 1")
+        .replace("log_interval = 10\n", "log_interval = 1\n");
+    assert_eq!(edited.matches("path = \"data\"").count() + edited.matches("count = 64").count(), 2, "{edited}");
+    assert!(edited.contains("from_step = 1\n") && edited.contains("log_interval = 1\n"), "{edited}");
+    let cfg = dir.path("chairs-tiny.toml");
+    std::fs::write(&cfg, edited).unwrap();
+    let run = dir.path("run");
+    let out =
+        two_ranks(300).arg("--config").arg(&cfg).arg("--run-dir").arg(&run).args(["--steps", "2"]).output().unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{said}");
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let seen: Vec<(i64, i64, i64)> = lines
+        .iter()
+        .map(|l| (l["step"].as_i64().unwrap(), l["resolution"].as_i64().unwrap(), l["batch_size"].as_i64().unwrap()))
+        .collect();
+    assert_eq!(seen, [(0, 32, 8), (1, 64, 4)], "{text}");
+    for l in &lines {
+        assert_eq!((l["d_skipped"].as_bool(), l["g_skipped"].as_bool()), (Some(false), Some(false)), "{l}");
+    }
+}
