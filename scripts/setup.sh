@@ -59,6 +59,14 @@ fi
 torch_lib="$("$venv/bin/python" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"
 [ -f "$torch_lib/libtorch_cpu.so" ] || die "libtorch_cpu.so not found in $torch_lib; the torch wheel looks incomplete. Remove .venv and re-run scripts/setup.sh."
 
+# The CUDA headers of the c10d bridge's NCCL group (gdrf-core's build script), added to
+# scripts/requirements.txt after environments made before it.
+if [ -f "$torch_lib/libtorch_cuda.so" ] && [ ! -f "$torch_lib/../../nvidia/cu13/include/crt/host_config.h" ]; then
+  say "installing the CUDA headers of the NCCL group (nvidia-cuda-crt, nvidia-cuda-cccl; 3 MB)"
+  grep '^nvidia-cuda-' "$root/scripts/requirements.txt" | sed 's/;.*//' | xargs "$venv/bin/python" -m pip install --quiet \
+    || die "pip could not install the nvidia-cuda-crt and nvidia-cuda-cccl lines of scripts/requirements.txt."
+fi
+
 # tch's LIBTORCH_USE_PYTORCH mode asks `python` (when VIRTUAL_ENV is set) for the
 # libtorch paths, so the build sees the project's interpreter first on PATH.
 mkdir -p "$root/.cargo"

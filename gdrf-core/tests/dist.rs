@@ -162,3 +162,21 @@ fn a_peer_that_dies_makes_the_other_rank_fail_not_hang() {
     let (ok, _) = finish(one, Duration::from_secs(10), "rank 1");
     assert!(!ok, "rank 1 was meant to die");
 }
+
+/// The NCCL group for CUDA tensors, asked for where CUDA is missing (this machine, or a
+/// build without NCCL): an error that says so, not an abort; the Gloo group still works.
+#[test]
+fn an_nccl_group_without_cuda_is_an_error_not_an_abort() {
+    if tch::Cuda::is_available() {
+        println!("CUDA is present: this test is about its absence");
+        return;
+    }
+    let _one = one_at_a_time();
+    let pg = ProcessGroup::join(&launch(0, 1, free_port()), Duration::from_secs(10)).unwrap();
+    let e = pg.use_nccl_for_cuda().unwrap_err().to_string();
+    assert!(e.contains("rank 0 of 1 could not make its NCCL group"), "{e}");
+    println!("{e}");
+    let t = [Tensor::from_slice(&[1.0f32, 2.0])];
+    pg.all_reduce(&t, Reduce::Sum, 64).unwrap();
+    assert_eq!(Vec::<f32>::try_from(&t[0]).unwrap(), [1.0, 2.0]);
+}

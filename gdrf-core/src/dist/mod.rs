@@ -80,7 +80,8 @@ pub enum Reduce {
     Average,
 }
 
-/// A joined c10d process group (Gloo). Dropping it leaves the group.
+/// A joined c10d process group: Gloo, and NCCL for CUDA tensors once
+/// [`ProcessGroup::use_nccl_for_cuda`] asked for it. Dropping it leaves the group.
 #[derive(Debug)]
 pub struct ProcessGroup {
     raw: ffi::Raw,
@@ -159,6 +160,15 @@ impl ProcessGroup {
         }
         self.bucketed(tensors, bucket_bytes, |bucket| {
             self.timed(|| ffi::broadcast(&self.raw, bucket, root)).map_err(|why| self.failed("broadcast", why))
+        })
+    }
+
+    /// From now on, collectives on CUDA tensors run in an NCCL group beside the Gloo one
+    /// (every rank must call it; CPU tensors stay with Gloo). An error naming what is
+    /// missing in a build without NCCL.
+    pub fn use_nccl_for_cuda(&self) -> Result<()> {
+        ffi::add_nccl(&self.raw, self.timeout).map_err(|why| {
+            Error::Distributed(format!("rank {} of {} could not make its NCCL group: {why}", self.rank, self.world))
         })
     }
 
@@ -253,6 +263,7 @@ mod ffi {
             err_len: usize,
         ) -> c_int;
         fn gdrf_c10d_barrier(group: *mut c_void, err: *mut c_char, err_len: usize) -> c_int;
+        fn gdrf_c10d_add_nccl(group: *mut c_void, timeout_ms: c_long, err: *mut c_char, err_len: usize) -> c_int;
         fn gdrf_c10d_free(group: *mut c_void);
     }
 
@@ -307,6 +318,12 @@ mod ffi {
     pub fn barrier(g: &Raw) -> Result<(), String> {
         // SAFETY: `g` is a live group.
         call(|err, len| unsafe { gdrf_c10d_barrier(g.0, err, len) == 0 })
+    }
+
+    pub fn add_nccl(g: &Raw, timeout: Duration) -> Result<(), String> {
+        let ms = timeout.as_millis().min(c_long::MAX as u128) as c_long;
+        // SAFETY: `g` is a live group.
+        call(|err, len| unsafe { gdrf_c10d_add_nccl(g.0, ms, err, len) == 0 })
     }
 
     pub fn free(g: &mut Raw) {

@@ -24,7 +24,8 @@ impl Trainer {
     /// Makes this trainer rank `group.rank()` of `group`: checks that every stage's batch
     /// splits into equal shares (each a multiple of the stage's `batch_split`, and even, so
     /// that the mode-seeking pairs stay on one rank), and that a batch judged globally is
-    /// not split into chunks, and copies rank 0's networks to every rank.
+    /// not split into chunks, and copies rank 0's networks to every rank. On CUDA the
+    /// gradients go through NCCL.
     pub fn join_group(&mut self, group: ProcessGroup) -> Result<()> {
         let world = group.world() as i64;
         for (i, s) in self.cfg.stages.iter().enumerate() {
@@ -47,6 +48,9 @@ impl Trainer {
                 self.cfg.stages[i].batch_split,
                 if d.minibatch_std_group > 0 { "discriminator.minibatch_std_group" } else { "discriminator.augment" },
             )));
+        }
+        if self.device.is_cuda() {
+            group.use_nccl_for_cuda()?;
         }
         for vs in [&self.gvs, &self.evs, &self.dvs] {
             let mut vars: Vec<_> = vs.variables().into_iter().collect();
