@@ -19,6 +19,16 @@ import sys
 sys.exit(0 if sys.version_info >= (3, 10) else 1)
 PY
 
+# A C++ compiler for gdrf-core's bridge to libtorch's c10d (built by the `cc` crate).
+if ! command -v c++ >/dev/null 2>&1 && ! command -v g++ >/dev/null 2>&1; then
+  sudo=""
+  [ "$(id -u)" = 0 ] || sudo="sudo -n"
+  command -v apt-get >/dev/null 2>&1 || die "no C++ compiler (c++ or g++) found; install one (the c10d bridge of gdrf-core is C++)."
+  say "installing a C++ compiler (Debian's g++) for gdrf-core's c10d bridge"
+  { $sudo apt-get install -y -q g++ >/dev/null 2>&1 || { $sudo apt-get update -q >/dev/null 2>&1 && $sudo apt-get install -y -q g++ >/dev/null 2>&1; }; } \
+    || die "could not install g++ with apt-get; install a C++ compiler and re-run scripts/setup.sh."
+fi
+
 if [ ! -x "$venv/bin/python" ]; then
   say "creating the Python environment in .venv"
   "$python" -m venv "$venv" || die "could not create a virtual environment with '$python -m venv'. On Debian/Ubuntu install python3-venv."
