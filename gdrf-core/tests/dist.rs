@@ -2,9 +2,11 @@
 //! ranks, and its failures: a port in use, a peer that never arrives, a peer that dies.
 //! Each test starts this test binary again as the workers (`GDRF_DIST_WORKER` names the
 //! worker to run) and bounds them in time.
+mod common;
 
+use common::finish;
 use gdrf_core::dist::{Launch, ProcessGroup, Reduce};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 use tch::{Device, Kind, Tensor};
 
@@ -29,33 +31,7 @@ fn launch(rank: usize, world: usize, port: u16) -> Launch {
 
 /// Starts test `test` of this binary as rank `rank` of `world`, running worker `worker`.
 fn spawn(test: &str, worker: &str, rank: usize, world: usize, port: u16) -> Child {
-    Command::new(std::env::current_exe().unwrap())
-        .args(["--exact", test, "--nocapture", "--test-threads", "1"])
-        .env(WORKER, worker)
-        .env("RANK", rank.to_string())
-        .env("WORLD_SIZE", world.to_string())
-        .env("MASTER_ADDR", "127.0.0.1")
-        .env("MASTER_PORT", port.to_string())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap()
-}
-
-/// Waits for `child` at most `limit`; kills it and panics past that (no test may hang).
-fn finish(mut child: Child, limit: Duration, what: &str) -> (bool, String) {
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > limit {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            panic!("{what} still running after {limit:?}:\n{}", String::from_utf8_lossy(&out.stdout));
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let out = child.wait_with_output().unwrap();
-    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    (out.status.success(), text)
+    common::spawn_rank(test, (WORKER, worker.as_ref()), rank, world, port)
 }
 
 /// This process's worker, when it was started as one.

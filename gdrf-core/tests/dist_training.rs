@@ -13,8 +13,7 @@ use gdrf_core::dist::{Launch, ProcessGroup};
 use gdrf_core::train::{TrainConfig, Trainer};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tch::Tensor;
 
 const STEPS: usize = 3;
@@ -120,32 +119,11 @@ fn two_ranks_train_as_one_process(variant: &str, test: &str) {
     assert!(moments > 0, "no optimiser moments among {:?}", alone.iter().map(|(n, _)| n).collect::<Vec<_>>());
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let ranks: Vec<_> = (0..2)
-        .map(|rank| {
-            Command::new(std::env::current_exe().unwrap())
-                .args(["--exact", test, "--nocapture"])
-                .env("GDRF_DIST_TRAIN_DIR", &dir.0)
-                .env("RANK", rank.to_string())
-                .env("WORLD_SIZE", "2")
-                .env("MASTER_ADDR", "127.0.0.1")
-                .env("MASTER_PORT", port.to_string())
-                .stdout(Stdio::piped())
-                .stderr(Stdio::piped())
-                .spawn()
-                .unwrap()
-        })
+        .map(|rank| common::spawn_rank(test, ("GDRF_DIST_TRAIN_DIR", dir.0.as_os_str()), rank, 2, port))
         .collect();
-    for (rank, mut child) in ranks.into_iter().enumerate() {
-        let start = Instant::now();
-        while child.try_wait().unwrap().is_none() {
-            if start.elapsed() > Duration::from_secs(300) {
-                let _ = child.kill();
-                panic!("rank {rank} still running after 5 minutes");
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let out = child.wait_with_output().unwrap();
-        let said = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "rank {rank}:\n{said}");
+    for (rank, child) in ranks.into_iter().enumerate() {
+        let (ok, said) = common::finish(child, Duration::from_secs(300), &format!("rank {rank}"));
+        assert!(ok, "rank {rank}:\n{said}");
         println!("rank {rank}:\n{said}");
     }
     let read = |r: usize| -> HashMap<String, Tensor> {

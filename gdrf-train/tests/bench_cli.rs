@@ -38,9 +38,8 @@ fn allreduce_runs_its_ranks_and_the_reference_and_writes_json_and_a_plot() {
 #[test]
 fn step_scaling_runs_ranks_of_both_implementations() {
     let dir = common::TempDir::new("bench-step-nproc").unwrap();
-    let cfg = common::tiny_run_config(&dir.0, 10);
-    let text = std::fs::read_to_string(&cfg).unwrap().replace("batch_size = 2", "batch_size = 4");
-    std::fs::write(&cfg, text).unwrap();
+    let cfg = dir.path("tiny.toml");
+    std::fs::write(&cfg, common::tiny_two_rank_config(&dir.0, 10)).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_gdrf-bench"))
         .current_dir(common::repo_root())
         .args(["step", "--nproc", "2", "--steps", "2", "--warmup", "1", "--config"])

@@ -146,9 +146,7 @@ static ONE_GROUP_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 fn two_ranks_and_one_process_resume_each_others_runs() {
     let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new("cli-nproc").unwrap();
-    let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100))
-        .unwrap()
-        .replace("batch_size = 2", "batch_size = 4");
+    let text = common::tiny_two_rank_config(&dir.0, 100);
     let cfg = dir.path("nproc.toml");
     std::fs::write(&cfg, text).unwrap();
     let losses = |run: &Path| -> Vec<(i64, f64, f64)> {
@@ -195,9 +193,7 @@ fn two_ranks_and_one_process_resume_each_others_runs() {
 fn two_ranks_roll_back_together() {
     let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new("cli-nproc-rollback").unwrap();
-    let mut text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 6))
-        .unwrap()
-        .replace("batch_size = 2", "batch_size = 4");
+    let mut text = common::tiny_two_rank_config(&dir.0, 6);
     text.push_str("\n[debug]\ninject_nonfinite_steps = [1, 2, 3]\n\n[guard]\nrollback_after = 3\n");
     let cfg = dir.path("rollback.toml");
     std::fs::write(&cfg, text).unwrap();
@@ -252,10 +248,8 @@ fn rank_pids(launcher: u32, rank: usize) -> Vec<u32> {
 fn a_killed_or_hung_rank_stops_the_run_with_an_error_naming_it() {
     let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new("cli-nproc-kill").unwrap();
-    let text = std::fs::read_to_string(common::tiny_run_config(&dir.0, 100_000))
-        .unwrap()
-        .replace("batch_size = 2", "batch_size = 4")
-        .replace("checkpoint_interval = 1000", "checkpoint_interval = 5");
+    let text =
+        common::tiny_two_rank_config(&dir.0, 100_000).replace("checkpoint_interval = 1000", "checkpoint_interval = 5");
     let cfg = dir.path("kill.toml");
     std::fs::write(&cfg, text).unwrap();
     for (signal, timeout) in [("KILL", 60u64), ("STOP", 4)] {
@@ -327,9 +321,7 @@ fn a_killed_or_hung_rank_stops_the_run_with_an_error_naming_it() {
 fn a_non_finite_step_on_one_rank_is_skipped_on_both() {
     let _one = ONE_GROUP_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = TempDir::new("cli-nproc-nan").unwrap();
-    let base = std::fs::read_to_string(common::tiny_run_config(&dir.0, 5))
-        .unwrap()
-        .replace("batch_size = 2", "batch_size = 4");
+    let base = common::tiny_two_rank_config(&dir.0, 5);
     let configs = [("one-rank", "[1]"), ("every-rank", "[]")].map(|(name, ranks)| {
         let path = dir.path(&format!("{name}.toml"));
         let text = format!("{base}\n[debug]\ninject_nonfinite_steps = [2]\ninject_nonfinite_ranks = {ranks}\n");

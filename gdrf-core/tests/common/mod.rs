@@ -166,6 +166,53 @@ shadows = false
     path
 }
 
+/// The text of [`tiny_run_config`] at batch 4, which splits into two even shares (the
+/// data-parallel tests' two ranks).
+pub fn tiny_two_rank_config(dir: &Path, total_steps: i64) -> String {
+    let text = std::fs::read_to_string(tiny_run_config(dir, total_steps)).unwrap();
+    assert!(text.contains("batch_size = 2\n"), "{text}");
+    text.replace("batch_size = 2\n", "batch_size = 4\n")
+}
+
+/// Starts test `test` of this test binary again, as rank `rank` of `world` (torchrun's
+/// variables, rendezvous on loopback `port`), with `env` set too; its output piped.
+pub fn spawn_rank(
+    test: &str,
+    env: (&str, &std::ffi::OsStr),
+    rank: usize,
+    world: usize,
+    port: u16,
+) -> std::process::Child {
+    Command::new(std::env::current_exe().unwrap())
+        .args(["--exact", test, "--nocapture", "--test-threads", "1"])
+        .env(env.0, env.1)
+        .env("RANK", rank.to_string())
+        .env("WORLD_SIZE", world.to_string())
+        .env("MASTER_ADDR", "127.0.0.1")
+        .env("MASTER_PORT", port.to_string())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Waits for `child` at most `limit`; kills it and panics past that (no test may hang).
+/// Returns whether it succeeded and what it printed.
+pub fn finish(mut child: std::process::Child, limit: std::time::Duration, what: &str) -> (bool, String) {
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!("{what} still running after {limit:?}:\n{}", String::from_utf8_lossy(&out.stdout));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    (out.status.success(), text)
+}
+
 /// The checkpoint files of a run (`step-N.safetensors`, no temporaries), oldest first.
 pub fn checkpoint_names(run: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(run.join("checkpoints"))
