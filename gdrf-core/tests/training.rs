@@ -9,6 +9,7 @@ use gdrf_core::checkpoint::load_generator;
 use gdrf_core::disc::augment::Augmentation;
 use gdrf_core::disc::DiscKind;
 use gdrf_core::loss::gan::Adversarial;
+use gdrf_core::loss::LossConfig;
 use gdrf_core::train::{run, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
@@ -203,6 +204,32 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
     assert!(gdrf_core::eval::provenance::trained_against_projected(&g.header));
     let g = load_generator(&dir.path("c").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert!(gdrf_core::eval::provenance::trained_against_projected(&g.header));
+}
+
+#[test]
+fn the_lazy_coverage_term_runs_every_kth_step_at_k_times_the_weight() {
+    let dir = TempDir::new("train-lazy-coverage").unwrap();
+    let mut every = tiny_config(&dir.0, "");
+    every.loss.coverage_weight = 0.5;
+    every.loss.coverage_candidates = 3;
+    every.loss.coverage_resolution = 4;
+    let lazy_cfg = TrainConfig { loss: LossConfig { coverage_interval: 2, ..every.loss.clone() }, ..every.clone() };
+    let mut a = Trainer::new(every, &dir.path("every")).unwrap();
+    a.prepare_data(&|| {}).unwrap();
+    let first = run_steps(&mut a, 1).remove(0);
+    let mut lazy = Trainer::new(lazy_cfg, &dir.path("lazy")).unwrap();
+    let runs = run_steps(&mut lazy, 3);
+    let coverage = |r: &StepReport| r.g_terms.iter().find(|(k, _)| *k == "g_coverage").map(|t| t.1);
+    // Step 0 is due: the same draws give the same MSE, weighed twice (0.5 · 2 instead of 0.5).
+    let (c, c_lazy) = (coverage(&first).expect("a coverage term"), coverage(&runs[0]).expect("a coverage term"));
+    assert_eq!(c.to_bits(), c_lazy.to_bits());
+    let extra = runs[0].g_total - first.g_total;
+    assert!((extra - 0.5 * c).abs() <= 1e-6 + 1e-5 * (0.5 * c).abs(), "G total grew by {extra}, expected {}", 0.5 * c);
+    // … and the doubled weight reaches the gradient, not only the reported total.
+    assert_ne!(first.grad_norm_g, runs[0].grad_norm_g);
+    // Step 1 renders no coverage term; step 2 does again.
+    assert_eq!(coverage(&runs[1]), None);
+    assert!(coverage(&runs[2]).is_some_and(|c| c.is_finite() && c > 0.0));
 }
 
 #[test]

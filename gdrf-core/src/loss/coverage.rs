@@ -18,8 +18,8 @@ pub struct CoverageDraws {
 /// Picks, for each real image `(B, 3, S, S)` seen from `real_poses: (B, 2)`, the nearest of
 /// its candidate codes at `coverage_resolution` (rendered by `renderers.0`, without
 /// gradients), renders it at the real pose with gradients (`renderers.1`, in `split`
-/// chunks, `samples` coarse samples per ray), and accumulates the weighted MSE's gradient
-/// into the generator. Returns the MSE.
+/// chunks, `samples` coarse samples per ray), and accumulates the MSE's gradient times
+/// `weight` (the step's, [`LossConfig::coverage_at`]) into the generator. Returns the MSE.
 pub fn coverage_gradients(
     (candidates, live): &(Renderer, Renderer),
     real: &Tensor,
@@ -27,6 +27,7 @@ pub fn coverage_gradients(
     draws: &CoverageDraws,
     (samples, split): (i64, i64),
     cfg: &LossConfig,
+    weight: f64,
 ) -> Result<Tensor> {
     let (b, res) = (real.size()[0], real.size()[2]);
     let k = cfg.coverage_candidates;
@@ -54,7 +55,7 @@ pub fn coverage_gradients(
         let lat = gen.latents(&zc, &zc, None)?;
         let (img, _) = live.render_regions(&lat, &poses.narrow(c * chunk, chunk), res, 1, &noise)?;
         let m = (img - sl(real)).square().mean(Kind::Float);
-        (&m * (cfg.coverage_weight / split as f64)).backward();
+        (&m * (weight / split as f64)).backward();
         mse += m.double_value(&[]) / split as f64;
     }
     Ok(Tensor::from(mse))

@@ -61,6 +61,10 @@ pub struct LossConfig {
     pub coverage_weight: f64,
     pub coverage_candidates: i64,
     pub coverage_resolution: i64,
+    /// Apply the coverage term every k steps only, scaled by k (lazily, as `r1_interval`
+    /// does for R1); 1 = every step. Its renders cost about as much as the rest of a
+    /// 32² step, so a long run takes it lazily.
+    pub coverage_interval: i64,
     /// Top-k schedule: p = max(0.99^(step/interval), floor).
     pub topk_interval: f64,
     pub topk_floor: f64,
@@ -86,6 +90,7 @@ impl Default for LossConfig {
             coverage_weight: 0.0,
             coverage_candidates: 16,
             coverage_resolution: 16,
+            coverage_interval: 1,
             topk_interval: 2000.0,
             topk_floor: 0.6,
             adversarial: gan::Adversarial::Logistic,
@@ -127,6 +132,12 @@ impl LossConfig {
             return Err(Error::Config(format!(
                 "loss.coverage_resolution is {}, expected 2 to 512 pixels",
                 self.coverage_resolution
+            )));
+        }
+        if self.coverage_interval < 1 {
+            return Err(Error::Config(format!(
+                "loss.coverage_interval is {}, expected at least 1",
+                self.coverage_interval
             )));
         }
         if self.diversity_decay < 0 {
@@ -204,6 +215,16 @@ impl LossConfig {
     /// The caller makes the real images require grad on those steps.
     pub fn r1_due(&self, step: i64) -> bool {
         self.r1_gamma != 0.0 && step % self.r1_interval == 0
+    }
+
+    /// The coverage term's weight at `step`: `coverage_weight · coverage_interval` on the
+    /// steps where the lazy term is due, else 0 (and the term is not rendered).
+    pub fn coverage_at(&self, step: i64) -> f64 {
+        if self.coverage_weight > 0.0 && step % self.coverage_interval == 0 {
+            self.coverage_weight * self.coverage_interval as f64
+        } else {
+            0.0
+        }
     }
 }
 
@@ -371,7 +392,20 @@ mod tests {
         let e = LossConfig { r1_interval: 0, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("r1_interval"), "{e}");
         assert!(LossConfig { topk_floor: 1.5, ..Default::default() }.validate().is_err());
+        let e = LossConfig { coverage_interval: 0, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("loss.coverage_interval is 0"), "{e}");
         LossConfig::default().validate().unwrap();
+    }
+
+    #[test]
+    fn the_lazy_coverage_term_weighs_k_times_on_every_kth_step() {
+        let off = LossConfig { coverage_interval: 3, ..Default::default() };
+        assert!((0..7).all(|s| off.coverage_at(s) == 0.0));
+        let every = LossConfig { coverage_weight: 0.5, ..Default::default() };
+        assert!((0..7).all(|s| every.coverage_at(s) == 0.5));
+        let lazy = LossConfig { coverage_interval: 3, ..every };
+        let w: Vec<f64> = (0..7).map(|s| lazy.coverage_at(s)).collect();
+        assert_eq!(w, [1.5, 0.0, 0.0, 1.5, 0.0, 0.0, 1.5]);
     }
 
     #[test]

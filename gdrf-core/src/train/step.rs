@@ -262,21 +262,22 @@ impl Trainer {
             Some(l) => l,
             None => self.generator_gradients(stage, at)?,
         };
-        if self.cfg.loss.coverage_weight > 0.0 {
+        let coverage = self.cfg.loss.coverage_at(at.step);
+        if coverage > 0.0 {
             let poses = real_poses.as_ref().ok_or_else(|| {
                 Error::Config(
                     "loss.coverage_weight needs the real images' poses; the dataset has none (see data.poses)".into(),
                 )
             })?;
-            let c = self.coverage_gradients(stage, at, real, poses)?;
-            losses.total = &losses.total + &c * self.cfg.loss.coverage_weight;
+            let c = self.coverage_gradients(stage, at, real, poses, coverage)?;
+            losses.total = &losses.total + &c * coverage;
             losses.terms.push(("g_coverage", c));
         }
         self.apply(Net::G, &losses, lr)
     }
 
-    /// The coverage term's gradient, left in G (see [`crate::loss::coverage`]), with this
-    /// step's draws, on this rank's rows of the global batch `real` seen from `real_poses`
+    /// The coverage term's gradient times `weight`, left in G (see [`crate::loss::coverage`]),
+    /// with this step's draws, on this rank's rows of the global batch `real` seen from `real_poses`
     /// (a per-image term: the ranks' average is the global batch's). Returns the MSE.
     fn coverage_gradients(
         &mut self,
@@ -284,6 +285,7 @@ impl Trainer {
         at: Schedule,
         real: &Tensor,
         real_poses: &Tensor,
+        weight: f64,
     ) -> Result<Tensor> {
         let (b, res, step) = (real.size()[0], stage.resolution, at.step);
         let k = self.cfg.loss.coverage_candidates;
@@ -307,6 +309,7 @@ impl Trainer {
             &draws,
             (stage.num_steps as i64, stage.batch_split),
             &self.cfg.loss,
+            weight,
         )
     }
 
