@@ -69,6 +69,8 @@ fn seed() -> u64 {
 type Op = (u8, u64, u64);
 
 const BYTES: [u8; 8] = [0, 0xff, 0x7f, 0x80, b'9', b'-', b'"', b'{'];
+// Kept as a table: one token per line would hide which ones there are.
+#[rustfmt::skip]
 const TOKENS: [&str; 16] = [
     "1e309", "-1", "99999999999999999999", "nan", "\"", "[", "]", "{", "}", ",", "\n", "=", "0", "4294967296",
     "[[stages]]\n", "\"F64\"",
@@ -127,7 +129,14 @@ fn mutate(seed_bytes: &[u8], head: usize, ops: &[Op]) -> Vec<u8> {
 /// `path` or the folder it lies in). Each parse must return (Ok, or an error whose message
 /// holds `path`'s file name) without panicking, and allocate no single block larger than
 /// `FLOOR + per_byte · file length`. Returns how many inputs were errors.
-fn fuzz(name: &str, path: &Path, seed_bytes: &[u8], head: usize, per_byte: usize, parse: impl Fn(&Path) -> Result<(), String>) -> usize {
+fn fuzz(
+    name: &str,
+    path: &Path,
+    seed_bytes: &[u8],
+    head: usize,
+    per_byte: usize,
+    parse: impl Fn(&Path) -> Result<(), String>,
+) -> usize {
     fuzz_fixed(name, path, seed_bytes, head, per_byte, |_| (), parse)
 }
 
@@ -139,7 +148,7 @@ fn fuzz_fixed(
     seed_bytes: &[u8],
     head: usize,
     per_byte: usize,
-    fix: impl Fn(&mut Vec<u8>),
+    fix: impl Fn(&mut [u8]),
     parse: impl Fn(&Path) -> Result<(), String>,
 ) -> usize {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
@@ -187,7 +196,7 @@ fn err_string(e: gdrf_core::Error) -> String {
 const IMAGE_PER_BYTE: usize = 16 * 8 * 1032;
 
 /// Recomputes every PNG chunk's CRC-32 (length, type, data, CRC from byte 8 on).
-fn fix_png_crcs(b: &mut Vec<u8>) {
+fn fix_png_crcs(b: &mut [u8]) {
     let mut pos = 8;
     while pos + 12 <= b.len() {
         let len = u32::from_be_bytes(b[pos..pos + 4].try_into().unwrap()) as usize;
@@ -213,7 +222,9 @@ fn image_files() {
     let dir = TempDir::new("fuzz-images").unwrap();
     let png = encoded(image::DynamicImage::ImageRgba8(gradient(24, 16)), image::ImageFormat::Png);
     let gray16 = encoded(
-        image::DynamicImage::ImageLuma16(image::ImageBuffer::from_fn(9, 7, |x, y| image::Luma([(x * 7000 + y * 300) as u16]))),
+        image::DynamicImage::ImageLuma16(image::ImageBuffer::from_fn(9, 7, |x, y| {
+            image::Luma([(x * 7000 + y * 300) as u16])
+        })),
         image::ImageFormat::Png,
     );
     let rgb = image::DynamicImage::ImageRgba8(gradient(24, 16)).to_rgb8();
@@ -368,8 +379,14 @@ fn hostile_safetensors_headers() {
         ("header length past the end", with_length(bytes.len() as u64)),
         ("header length 0", with_length(0)),
         ("header length 1 TB", with_length(1 << 40)),
-        ("overlapping offsets", with_header(&format!("{}\"data_offsets\":[0,8]{}", &json[..first], &json[offsets_end..]))),
-        ("offsets past the end", with_header(&format!("{}\"data_offsets\":[0,{}]{}", &json[..first], u64::MAX, &json[offsets_end..]))),
+        (
+            "overlapping offsets",
+            with_header(&format!("{}\"data_offsets\":[0,8]{}", &json[..first], &json[offsets_end..])),
+        ),
+        (
+            "offsets past the end",
+            with_header(&format!("{}\"data_offsets\":[0,{}]{}", &json[..first], u64::MAX, &json[offsets_end..])),
+        ),
         ("the file's bytes only", bytes[..span].to_vec()),
         ("8 bytes", bytes[..8].to_vec()),
         ("empty", Vec::new()),
@@ -379,14 +396,30 @@ fn hostile_safetensors_headers() {
     }
     let shape = json.find("\"shape\":[").unwrap();
     let shape_end = shape + json[shape..].find(']').unwrap() + 1;
-    for s in ["[4294967296,4294967296]", "[18446744073709551615,2]", "[-1]", "[1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1]"] {
-        cases.push(("a shape that does not fit its bytes", with_header(&format!("{}\"shape\":{s}{}", &json[..shape], &json[shape_end..]))));
+    for s in [
+        "[4294967296,4294967296]",
+        "[18446744073709551615,2]",
+        "[-1]",
+        "[1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1,1]",
+    ] {
+        cases.push((
+            "a shape that does not fit its bytes",
+            with_header(&format!("{}\"shape\":{s}{}", &json[..shape], &json[shape_end..])),
+        ));
     }
-    for (key, value) in [("hidden_dim", "16000000"), ("mapping_hidden_dim", "4000000000"), ("trunk_layers", "100000000"), ("latent_dim", "0")] {
+    for (key, value) in [
+        ("hidden_dim", "16000000"),
+        ("mapping_hidden_dim", "4000000000"),
+        ("trunk_layers", "100000000"),
+        ("latent_dim", "0"),
+    ] {
         let gdrf = json.find(&format!("\\\"{key}\\\":")).unwrap_or_else(|| panic!("{key} not in the header"));
         let start = gdrf + key.len() + 5;
         let end = start + json[start..].find(|c: char| !c.is_ascii_digit()).unwrap();
-        cases.push(("a generator config the tensors do not hold", with_header(&format!("{}{value}{}", &json[..start], &json[end..]))));
+        cases.push((
+            "a generator config the tensors do not hold",
+            with_header(&format!("{}{value}{}", &json[..start], &json[end..])),
+        ));
     }
     let path = dir.path("hostile.safetensors");
     for (what, b) in cases {
@@ -409,14 +442,17 @@ fn hostile_safetensors_headers() {
 fn hostile_initialiser_headers() {
     let dir = TempDir::new("fuzz-init").unwrap();
     let path: PathBuf = dir.path("init.safetensors");
-    for (mapping_hidden, resolution) in [(-1i64, 64i64), (1 << 40, 64), (i64::MAX, 64), (16, 0), (16, -5), (16, 1 << 40)] {
+    for (mapping_hidden, resolution) in
+        [(-1i64, 64i64), (1 << 40, 64), (i64::MAX, 64), (16, 0), (16, -5), (16, 1 << 40)]
+    {
         let json = serde_json::json!({
             "format_version": 1, "generator": "g", "resolution": resolution, "mapping_hidden": mapping_hidden,
             "step": 0, "config": gdrf_core::invert::init::InitConfig::default(),
         })
         .to_string();
         let head = tch::Tensor::zeros([19, 512], (Kind::Float, Device::Cpu));
-        let b = checkpoint::tensors_to_bytes(&[("head.weight".into(), head)], gdrf_core::invert::init::INIT_KEY, &json).unwrap();
+        let b = checkpoint::tensors_to_bytes(&[("head.weight".into(), head)], gdrf_core::invert::init::INIT_KEY, &json)
+            .unwrap();
         std::fs::write(&path, b).unwrap();
         let e = match gdrf_core::invert::init::Initialiser::load(&path, "g", Device::Cpu) {
             Ok(_) => panic!("mapping_hidden {mapping_hidden}, resolution {resolution}: loaded"),

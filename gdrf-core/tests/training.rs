@@ -109,12 +109,9 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
                                                          // The export and the training checkpoint both load as the EMA generator.
     let exported = load_generator(&run_dir.join(run::GENERATOR), Device::Cpu, Kind::Float).unwrap();
     let from_ckpt = load_generator(&run::latest_checkpoint(&run_dir).unwrap().1, Device::Cpu, Kind::Float).unwrap();
-    assert!(same_params(&params(&exported.vs), &params(&t.ema_vars())));
-    assert!(same_params(&params(&from_ckpt.vs), &params(&t.ema_vars())));
-    assert!(
-        !same_params(&params(&t.ema_vars()), &params(&t.generator_vars())),
-        "the EMA differs from the live weights"
-    );
+    assert!(same_params(&params(&exported.vs), &params(t.ema_vars())));
+    assert!(same_params(&params(&from_ckpt.vs), &params(t.ema_vars())));
+    assert!(!same_params(&params(t.ema_vars()), &params(t.generator_vars())), "the EMA differs from the live weights");
 }
 
 #[test]
@@ -139,9 +136,9 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
         assert_eq!(x.g_terms, y.g_terms);
         assert_eq!(x.grad_norm_g.to_bits(), y.grad_norm_g.to_bits());
     }
-    assert!(same_params(&params(&a.generator_vars()), &params(&b.generator_vars())));
-    assert!(same_params(&params(&a.ema_vars()), &params(&b.ema_vars())));
-    assert!(same_params(&params(&a.disc_vars()), &params(&b.disc_vars())));
+    assert!(same_params(&params(a.generator_vars()), &params(b.generator_vars())));
+    assert!(same_params(&params(a.ema_vars()), &params(b.ema_vars())));
+    assert!(same_params(&params(a.disc_vars()), &params(b.disc_vars())));
     // The resumed run's metrics hold each step once.
     let steps: Vec<i64> =
         run::read_metrics(&dir.path("b")).unwrap().iter().map(|m| m["step"].as_i64().unwrap()).collect();
@@ -193,8 +190,8 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
         assert_eq!(x.d_total.to_bits(), y.d_total.to_bits(), "step {}: D {} vs {}", x.step, x.d_total, y.d_total);
         assert_eq!(x.g_terms, y.g_terms, "step {}", x.step);
     }
-    assert!(same_params(&params(&a.disc_vars()), &params(&b.disc_vars())));
-    assert!(same_params(&params(&a.generator_vars()), &params(&b.generator_vars())));
+    assert!(same_params(&params(a.disc_vars()), &params(b.disc_vars())));
+    assert!(same_params(&params(a.generator_vars()), &params(b.generator_vars())));
     // The exported generator says which discriminator shaped it, and the evaluation reads it.
     let g = load_generator(&dir.path("a").join("generator.safetensors"), Device::Cpu, Kind::Float).unwrap();
     assert_eq!(g.header.info.get("discriminator").map(String::as_str), Some("projected"));
@@ -239,11 +236,11 @@ fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
     run_steps(&mut t, 1);
-    let (g_before, d_before) = (params(&t.generator_vars()), params(&t.disc_vars()));
+    let (g_before, d_before) = (params(t.generator_vars()), params(t.disc_vars()));
     let r = run_steps(&mut t, 1).remove(0);
     assert!(r.g_skipped && !r.d_skipped && r.g_total.is_nan());
-    assert!(same_params(&g_before, &params(&t.generator_vars())), "a skipped step leaves G untouched");
-    assert!(!same_params(&d_before, &params(&t.disc_vars())), "D still takes its finite step");
+    assert!(same_params(&g_before, &params(t.generator_vars())), "a skipped step leaves G untouched");
+    assert!(!same_params(&d_before, &params(t.disc_vars())), "D still takes its finite step");
     assert_eq!((t.progress().skipped_steps, t.progress().consecutive_bad), (1, 1));
     // Steps 2–5 are clean (checkpoints after 2, 4 and 6 steps), then 6, 7, 8 fail.
     let reports = run_steps(&mut t, 7);
@@ -270,11 +267,11 @@ fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
     let mut seen = Vec::new();
     for _ in 0..6 {
         let decay = t.ema().next_decay();
-        let shadow = params(&t.ema_vars());
+        let shadow = params(t.ema_vars());
         let r = t.step().unwrap();
         // shadow ← shadow − (1 − d)(shadow − param), with the warm-up decay (1 + n)/(10 + n).
-        let live = params(&t.generator_vars());
-        for ((name, s0), ((_, s1), (_, p))) in shadow.iter().zip(params(&t.ema_vars()).iter().zip(&live)) {
+        let live = params(t.generator_vars());
+        for ((name, s0), ((_, s1), (_, p))) in shadow.iter().zip(params(t.ema_vars()).iter().zip(&live)) {
             let want = s0 - (s0 - p) * (1.0 - decay);
             assert!(s1.allclose(&want, 1e-5, 1e-7, false), "EMA of {name} at step {}", r.step);
         }
@@ -302,11 +299,11 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
     cfg.stages[0].g_lr = Some(0.0);
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
     t.prepare_data(&|| {}).unwrap();
-    let (g0, e0, d0) = (params(&t.generator_vars()), params(&t.ema_vars()), params(&t.disc_vars()));
+    let (g0, e0, d0) = (params(t.generator_vars()), params(t.ema_vars()), params(t.disc_vars()));
     let reports = run_steps(&mut t, 3);
-    assert!(same_params(&params(&t.generator_vars()), &g0), "the generator moved in a discriminator-only stage");
-    assert!(same_params(&params(&t.ema_vars()), &e0), "the EMA moved in a discriminator-only stage");
-    assert!(!same_params(&params(&t.disc_vars()), &d0), "the discriminator did not train");
+    assert!(same_params(&params(t.generator_vars()), &g0), "the generator moved in a discriminator-only stage");
+    assert!(same_params(&params(t.ema_vars()), &e0), "the EMA moved in a discriminator-only stage");
+    assert!(!same_params(&params(t.disc_vars()), &d0), "the discriminator did not train");
     assert_eq!(t.ema().updates, 0);
     for r in &reports {
         assert_eq!(r.lr_g, 0.0);
@@ -322,7 +319,7 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
     let r = run_steps(&mut t, 1);
     assert_eq!(r[0].lr_g, 3e-4);
     assert!(r[0].g_total.is_finite());
-    assert!(!same_params(&params(&t.generator_vars()), &g0));
+    assert!(!same_params(&params(t.generator_vars()), &g0));
     assert_eq!(t.ema().updates, 1);
 }
 
@@ -365,10 +362,10 @@ fn the_one_render_step_equals_two_renders_of_the_same_images() {
     two.prepare_data(&|| {}).unwrap();
     cfg.step = gdrf_core::train::StepKind::OneRender;
     let mut one = Trainer::new(cfg, &dir.path("one")).unwrap();
-    let d0 = params(&one.disc_vars());
+    let d0 = params(one.disc_vars());
     assert!(
-        same_params(&d0, &params(&two.disc_vars()))
-            && same_params(&params(&one.generator_vars()), &params(&two.generator_vars()))
+        same_params(&d0, &params(two.disc_vars()))
+            && same_params(&params(one.generator_vars()), &params(two.generator_vars()))
     );
 
     let terms_one = one.one_render_gradients_now().unwrap();
@@ -376,7 +373,7 @@ fn the_one_render_step_equals_two_renders_of_the_same_images() {
     let terms_two = two.generator_gradients_now().unwrap();
 
     // The same discriminator update, and it did move.
-    let (d_one, d_two) = (params(&one.disc_vars()), params(&two.disc_vars()));
+    let (d_one, d_two) = (params(one.disc_vars()), params(two.disc_vars()));
     assert!(!same_params(&d_one, &d0));
     let mut moved = 0;
     for (((name, a), (_, b)), (_, before)) in d_one.iter().zip(&d_two).zip(&d0) {
@@ -514,12 +511,12 @@ fn a_run_can_start_from_an_exported_generator() {
     warm.seed = 6;
     warm.init_generator = Some(export.clone());
     let b = Trainer::new(warm.clone(), &dir.path("b")).unwrap();
-    assert!(same_params(&params(&b.generator_vars()), &params(&exported.vs)));
-    assert!(same_params(&params(&b.ema_vars()), &params(&exported.vs)));
+    assert!(same_params(&params(b.generator_vars()), &params(&exported.vs)));
+    assert!(same_params(&params(b.ema_vars()), &params(&exported.vs)));
     warm.init_generator = None;
     let cold = Trainer::new(warm.clone(), &dir.path("c")).unwrap();
-    assert!(!same_params(&params(&cold.generator_vars()), &params(&exported.vs)));
-    assert!(same_params(&params(&b.disc_vars()), &params(&cold.disc_vars())), "the discriminator starts from the seed");
+    assert!(!same_params(&params(cold.generator_vars()), &params(&exported.vs)));
+    assert!(same_params(&params(b.disc_vars()), &params(cold.disc_vars())), "the discriminator starts from the seed");
 
     // Another architecture, or no such file: an error naming the key.
     let mut wide = warm.clone();
@@ -591,7 +588,9 @@ fn a_damaged_newest_checkpoint_is_passed_over() {
         out.extend_from_slice(&b[8 + n..]);
         *b = out;
     };
-    let damages: [(&str, &dyn Fn(&mut Vec<u8>)); 5] = [
+    // (what the error names, how the file is damaged); some damages change its length.
+    type Damage<'a> = (&'a str, &'a dyn Fn(&mut Vec<u8>));
+    let damages: [Damage; 5] = [
         ("truncated", &|b| b.truncate(b.len() / 2)),
         ("checksum", &|b| *b.last_mut().unwrap() ^= 1),
         ("NaN", &nan),

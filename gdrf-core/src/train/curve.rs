@@ -198,11 +198,14 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
         Panel { title: "position, worst seed".into(), series: per_score(&|s| num(&s["worst_position"])), log_y: false },
         Panel { title: "yaw error deg".into(), series: yaw, log_y: false },
         Panel {
-            title: "seconds per step (median)".into(),
-            series: vec![Series {
-                name: "step".into(),
-                points: lines.iter().map(|l| (x(l), l["step_seconds"].as_f64().unwrap_or(f64::NAN))).collect(),
-            }],
+            title: "seconds per step".into(),
+            series: vec![
+                Series {
+                    name: "median".into(),
+                    points: lines.iter().map(|l| (x(l), l["step_seconds"].as_f64().unwrap_or(f64::NAN))).collect(),
+                },
+                Series { name: "mean".into(), points: lines.iter().map(x).zip(mean_step_seconds(&lines)).collect() },
+            ],
             log_y: false,
         },
     ];
@@ -225,6 +228,21 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
 const FRAME_SWAP: i64 = 4;
 /// Samples a filmstrip row shows (two rows of four).
 const FRAME_SAMPLES: i64 = 8;
+
+/// Mean seconds per training step between each evaluation and the one before it (NaN for
+/// the first): the median hides a term that runs only every k-th step, the mean does not.
+/// From `train_seconds`, so it includes whatever else shared the machine.
+fn mean_step_seconds(lines: &[serde_json::Value]) -> Vec<f64> {
+    let at = |l: &serde_json::Value| (l["step"].as_f64(), l["train_seconds"].as_f64());
+    let mut out = vec![f64::NAN; lines.len().min(1)];
+    for w in lines.windows(2) {
+        out.push(match (at(&w[0]), at(&w[1])) {
+            ((Some(s0), Some(t0)), (Some(s1), Some(t1))) if s1 > s0 => (t1 - t0) / (s1 - s0),
+            _ => f64::NAN,
+        });
+    }
+    out
+}
 
 /// One evaluation's filmstrip row: its first samples (4 × 2) and the top-left 4 × 4 of its
 /// swap matrix (rows keep the shape, columns the appearance), at the evaluation's resolution.
@@ -313,5 +331,15 @@ mod tests {
         );
         assert_eq!(best(&[line(5, &[("appearance follows j", Some(1.0))])]), None);
         assert_eq!(best(&[]), None);
+    }
+
+    #[test]
+    fn the_mean_step_time_is_train_seconds_over_steps_between_evaluations() {
+        let l = |step: i64, t: f64| json!({"step": step, "train_seconds": t});
+        let m = mean_step_seconds(&[l(5000, 4000.0), l(10000, 8050.0), l(15000, 12050.0), json!({"step": 20000})]);
+        assert_eq!(m.len(), 4);
+        assert!(m[0].is_nan() && m[3].is_nan());
+        assert_eq!(m[1..3], [0.81, 0.8]);
+        assert!(mean_step_seconds(&[]).is_empty());
     }
 }

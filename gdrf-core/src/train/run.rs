@@ -130,18 +130,19 @@ fn remove_temporaries(dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Appends one JSON line to metrics.jsonl (a whole line per write, flushed).
+/// Appends one JSON line to metrics.jsonl (see [`append_jsonl`]).
 pub fn append_metrics<T: serde::Serialize>(run_dir: &Path, line: &T) -> Result<()> {
     append_jsonl(&run_dir.join(METRICS), line)
 }
 
-/// Appends one JSON line to the file at `path` (a whole line per write, flushed).
+/// Appends one JSON line to the file at `path` (a whole line per write, on disk before it
+/// returns: a checkpoint written later, which is synced, never outlives the lines before it).
 pub fn append_jsonl<T: serde::Serialize>(path: &Path, line: &T) -> Result<()> {
     let mut f = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
     let mut text = serde_json::to_string(line)?;
     text.push('\n');
     f.write_all(text.as_bytes()).map_err(io(path))?;
-    f.flush().map_err(io(path))
+    f.sync_data().map_err(io(path))
 }
 
 /// Reads metrics.jsonl; a torn last line (a crash mid-write) is ignored.
