@@ -323,10 +323,10 @@ fn probe_learns_and_eval_is_calibrated() {
             assert!(dir.join(f).is_file(), "{}", dir.join(f).display());
         }
     }
-    // The plot: four panels of 520 × 320 and a caption; the filmstrip: a row per evaluation,
-    // each 16 px samples (two rows of four) beside the swap matrix's 3 × 3.
+    // The plot: five panels of 520 × 320 in two columns and a caption; the filmstrip: a row
+    // per evaluation, each 16 px samples (two rows of four) beside the swap matrix's 3 × 3.
     let plot = image::open(run.join("curve.png")).unwrap().to_rgb8();
-    assert_eq!(plot.dimensions(), (1040, 658));
+    assert_eq!(plot.dimensions(), (1040, 3 * 320 + 18));
     let strip = image::open(run.join("filmstrip.png")).unwrap().to_rgb8();
     assert_eq!(strip.dimensions(), (96 + 4 * 16 + 8 + 3 * 16 + 6, 2 * (3 * 16 + 6) + 6));
     // `gdrf-train ship` copies the evaluation the rule ranks best, byte for byte.
