@@ -8,7 +8,7 @@
 #   docs/images/invert-chairs-campaign.png      a held-out photo inverted: photo, reconstruction,
 #                                               four novel views, its appearance on seed 0's shape
 #   docs/images/invert-orbit-chairs-campaign.gif  the inverted features' 12-view orbit (32²)
-# Intermediate outputs go to out/figures/. Release binaries: about 5 minutes on two cores.
+# Intermediate outputs go to out/figures/. Release binaries: 2 min 21 s on two cores.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -21,6 +21,8 @@ model=models/chairs-campaign/generator.safetensors
 dir=models/chairs-campaign
 tmp=out/figures
 mkdir -p "$tmp" docs/images
+# Copies through a temporary name, so an interrupted run never leaves half a figure.
+place() { cp "$1" "$2.tmp" && mv -f "$2.tmp" "$2"; }
 [ -d data/chairs-64 ] || "$train" dataset prepare --config configs/chairs-tiny.toml
 
 "$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 64 --samples 12 \
@@ -29,16 +31,16 @@ mkdir -p "$tmp" docs/images
   --yaw 30 --out "$dir/swap-matrix-64.png"
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from seed:2 --orbit 24 --resolution 64 \
   --samples 12 --out "$tmp/orbit" --force
-cp "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
+place "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
   --num 500 --resolution 32 --samples 12 --out "$tmp/eval"
-cp "$tmp/eval/report.png" docs/images/eval-chairs-campaign.png
+place "$tmp/eval/report.png" docs/images/eval-chairs-campaign.png
 # A held-out chair of the dataset (never trained on) at its known pose.
 "$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 \
   --orbit 12 --out "$tmp/invert" --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from "$tmp/invert/features.safetensors" \
   --orbit 12 --resolution 64 --samples 12 --out "$tmp/invert-swap" --force
-cp "$tmp/invert/orbit.gif" docs/images/invert-orbit-chairs-campaign.gif
+place "$tmp/invert/orbit.gif" docs/images/invert-orbit-chairs-campaign.gif
 # The strip: photo, reconstruction, orbit views 2, 4, 6, 8 (yaw +60° to +240° from the
 # photo's), the swap's first frame; each enlarged to 128² without smoothing.
 "${GDRF_PYTHON:-.venv/bin/python}" - "$tmp" docs/images/invert-chairs-campaign.png <<'EOF'
