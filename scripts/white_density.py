@@ -46,28 +46,15 @@ import gdrf_ref as ref  # noqa: E402
 from bench_render import load  # noqa: E402
 
 
-def front_opacity_renderer():
-    """ref.render, also returning the opacity in front of the far plane of its last pass."""
-    seen = {}
-    integrate = ref.integrate
-
-    def recording(rgb, sigma, z, **k):
-        out = integrate(rgb, sigma, z, **k)
-        seen["front"] = out[2][..., :-1, :].sum(-2)
-        return out
-
-    def render(gen, shape, app, pitch, yaw, res, cam, n):
-        b = pitch.shape[0]
-        u = ((torch.arange(n, dtype=torch.float32) + 0.5) / n).expand(b, res * res, n)
-        ref.integrate = recording
-        try:
-            img, _, _ = ref.render(gen, shape, app, pitch, yaw, res, cam["fov_deg"], cam["ray_start"],
-                                   cam["ray_end"], n, None, u)
-        finally:
-            ref.integrate = integrate
-        return (img + 1) / 2, seen["front"].reshape(b, res, res)
-
-    return render
+def render(gen, shape, app, pitch, yaw, res, cam, n):
+    """The reference render in [0, 1] `(B, 3, res, res)` and its opacity in front of the far
+    plane `(B, res, res)`: the weights of every sample but the last."""
+    b = pitch.shape[0]
+    u = ((torch.arange(n, dtype=torch.float32) + 0.5) / n).expand(b, res * res, n)
+    img, _, _, samples = ref.render(gen, shape, app, pitch, yaw, res, cam["fov_deg"], cam["ray_start"],
+                                    cam["ray_end"], n, None, u, return_samples=True)
+    front = samples["weights"][..., :-1, :].sum((-2, -1))
+    return (img + 1) / 2, front.reshape(b, res, res)
 
 
 def poses(cam, k, g):
@@ -108,7 +95,7 @@ def real_end(dataset, res, threshold, limit):
             "white_of_opaque": float(white / max(1, opaque))}
 
 
-def figure(path, gen, cam, z, pitch, yaw, render, samples, threshold):
+def figure(path, gen, cam, z, pitch, yaw, samples, threshold):
     """Renders (top) and front opacity with near-white opaque pixels in red (bottom), atomically."""
     from PIL import Image
     with torch.no_grad():
@@ -137,9 +124,15 @@ def main():
     ap.add_argument("--images", type=int, default=2000)
     ap.add_argument("--figure", help="PNG of the last checkpoint's first 8 codes (see above)")
     a = ap.parse_args()
+    for flag, value, least in [("--codes", a.codes, 2), ("--resolution", a.resolution, 1),
+                               ("--samples", a.samples, 2), ("--images", a.images, 1)]:
+        if value < least:
+            ap.error(f"{flag} is {value}, expected at least {least}")
+    for path in a.checkpoints:
+        if not os.path.isfile(path):
+            ap.error(f"checkpoint {path} does not exist")
     if a.dataset:
         print(json.dumps(real_end(a.dataset, a.resolution, a.threshold, a.images)), flush=True)
-    render = front_opacity_renderer()
     for path in a.checkpoints:
         gen, header = load(path)
         cam, latent = header["camera"], header["generator"]["latent_dim"]
@@ -160,7 +153,7 @@ def main():
                           "white_flips_under_swap": int((white ^ white2).sum()) / n}), flush=True)
     if a.figure:
         k = min(8, a.codes)
-        figure(a.figure, gen, cam, z[:k], pitch[:k], yaw[:k], render, a.samples, a.threshold)
+        figure(a.figure, gen, cam, z[:k], pitch[:k], yaw[:k], a.samples, a.threshold)
 
 
 if __name__ == "__main__":

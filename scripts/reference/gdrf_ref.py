@@ -283,7 +283,7 @@ def render(gen, shape, appearance, pitch, yaw, res, fov, ray_start, ray_end, n, 
            lock_view_dependence=False, return_samples=False, **integ):
     """Renders (B, 3, res, res) in [-1, 1]; jitter and imp_u are (B, R, n) uniforms. With
     return_samples, also the sorted depths z (B, R, 2n), expected depth (B, R, 1), ray
-    origins and directions (B, R, 3)."""
+    origins and directions (B, R, 3), and the integration weights (B, R, 2n, 1)."""
     b = pitch.shape[0]
     r = res * res
     origins, dirs = world_rays(pitch, yaw, res, fov)
@@ -313,5 +313,5 @@ def render(gen, shape, appearance, pitch, yaw, res, fov, ray_start, ray_end, n, 
     img = pixel.reshape(b, res, res, 3).permute(0, 3, 1, 2) * 2 - 1
     out = (img, depth.reshape(b, 1, res, res), opacity.reshape(b, 1, res, res))
     if return_samples:
-        out += (dict(z=z_all, depth=depth, origins=origins, dirs=dirs),)
+        out += (dict(z=z_all, depth=depth, origins=origins, dirs=dirs, weights=weights),)
     return out
