@@ -460,7 +460,25 @@ fn every_shipped_config_loads_and_validates() {
         }
     }
     names.sort();
-    assert_eq!(names, ["carla", "cars", "chairs", "chairs-campaign", "chairs-tiny"]);
+    assert_eq!(
+        names,
+        ["carla", "cars", "chairs", "chairs-campaign", "chairs-campaign-cpu", "chairs-campaign-gpu", "chairs-tiny"]
+    );
+}
+
+/// The campaign's two continuation configs hold the same keys but for the GPU's float32
+/// and batch 32.
+#[test]
+fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
+    use gdrf_core::train::config::Precision;
+    let dir = common::repo_root().join("configs");
+    let cpu = TrainConfig::load(&dir.join("chairs-campaign-cpu.toml")).unwrap();
+    let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
+    assert_eq!((cpu.precision, gpu.precision), (Precision::Bfloat16, Precision::Float32));
+    assert_eq!((cpu.stages.len(), cpu.stages[0].batch_size, gpu.stages[0].batch_size), (1, 8, 32));
+    gpu.precision = cpu.precision;
+    gpu.stages[0].batch_size = cpu.stages[0].batch_size;
+    assert_eq!(gpu, cpu);
 }
 
 #[test]

@@ -275,7 +275,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
     }
 
     let gen_bar = if writer { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
-    let prepared = trainer.prepare_data(&|| gen_bar.inc(1))?;
+    // The writer generates a missing procedural dataset while the other ranks wait, then
+    // they find it finished: two generators rewriting the same PNGs let a rank read an
+    // image another was still writing (seen as "empty file").
+    let prepared = if writer { trainer.prepare_data(&|| gen_bar.inc(1))? } else { gdrf_core::data::Prepared::Existing };
+    trainer.barrier()?;
+    if !writer {
+        trainer.prepare_data(&|| {})?;
+    }
     gen_bar.finish_and_clear();
     if writer && prepared == gdrf_core::data::Prepared::Generated {
         println!("generated the procedural dataset in {}", trainer.cfg().data.path.display());

@@ -204,7 +204,8 @@ impl<F: RadianceField> Renderer<'_, F> {
         if !grids.is_empty() && grids.len() as i64 != poses.len() {
             return Err(Error::Shape(format!("{} occupancy grids for {} images", grids.len(), poses.len())));
         }
-        self.render_image_with(latents, poses, res, noise, |i, lat, rays, noise| match grids.get(i) {
+        // One image at a time: each has its own grid.
+        self.render_image_with(latents, poses, res, noise, 1, |i, lat, rays, noise| match grids.get(i) {
             Some(grid) => self.render_in_grid(lat, rays, grid, noise),
             None => self.render_bundle(lat, rays, noise),
         })

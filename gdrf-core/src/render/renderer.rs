@@ -97,31 +97,45 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     }
 
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so
-    /// any resolution fits in bounded memory.
+    /// any resolution fits in bounded memory. The reference sampler renders as many whole
+    /// images together as fit in one chunk: on a GPU, where every chunk costs the same few
+    /// hundred kernel launches, the coverage term's 512 candidates at 16² took 1.5–1.9 s one
+    /// image at a time, against 0.09 s for the rest of a campaign step. The skipping paths
+    /// keep one image at a time.
     pub fn render_image(&self, latents: &Latents, poses: &Poses, res: i64, noise: &Noise) -> Result<Image> {
+        let group = if self.config.skips_samples() {
+            1
+        } else {
+            let per_image = self.config.samples_per_ray() as i64 * res * res;
+            (self.config.chunk_points_on(latents.shape.gamma.device()) / per_image.max(1)).max(1)
+        };
         Ok(self
-            .render_image_with(latents, poses, res, noise, |_, lat, rays, noise| self.render_bundle(lat, rays, noise))?
+            .render_image_with(latents, poses, res, noise, group, |_, lat, rays, noise| {
+                self.render_bundle(lat, rays, noise)
+            })?
             .0)
     }
 
-    /// Renders `res × res` images without gradients one image at a time, each image's rays
-    /// by `per_image(i, latents, rays, noise)`. Also returns the density and colour queries
-    /// spent.
+    /// Renders `res × res` images without gradients, `group` images at a time, each group's
+    /// rays by `per_group(first image, latents, rays, noise)`. Also returns the density and
+    /// colour queries spent.
     pub(crate) fn render_image_with(
         &self,
         latents: &Latents,
         poses: &Poses,
         res: i64,
         noise: &Noise,
-        per_image: impl Fn(usize, &Latents, &Rays, &Noise) -> Result<RayColours>,
+        group: i64,
+        per_group: impl Fn(usize, &Latents, &Rays, &Noise) -> Result<RayColours>,
     ) -> Result<(Image, (i64, i64))> {
         let rays = Rays::from_poses(poses, res, self.camera.fov_deg);
         let (b, r) = (poses.len(), res * res);
         let mut parts = Vec::new();
         tch::no_grad(|| -> Result<()> {
-            for i in 0..b {
-                let (lat, rays, noise) = (latents.narrow(i, 1), rays.narrow_batch(i, 1), noise.slice(i, 1, 0, r));
-                parts.push(per_image(i as usize, &lat, &rays, &noise)?);
+            for i in (0..b).step_by(group.max(1) as usize) {
+                let n = group.max(1).min(b - i);
+                let (lat, rays, noise) = (latents.narrow(i, n), rays.narrow_batch(i, n), noise.slice(i, n, 0, r));
+                parts.push(per_group(i as usize, &lat, &rays, &noise)?);
             }
             Ok(())
         })?;
@@ -287,6 +301,50 @@ mod tests {
         let img2 = assemble_image(&again, 6);
         assert!(img.allclose(&img2, 1e-12, 1e-12, false));
         assert!(r.render_at_depths(&lat, &rays[0], &parts[0].z.narrow(1, 0, 2)).is_err());
+    }
+
+    /// `render_image` renders as many whole images together as fit in a chunk, and
+    /// its images, depths and opacities equal those rendered one image at a time (each
+    /// image keeps its rows of the noise), whether the last group is full or not.
+    #[test]
+    fn render_image_groups_whole_images_per_chunk() {
+        tch::manual_seed(5);
+        let mut vs = nn::VarStore::new(Device::Cpu);
+        let cfg = GeneratorConfig::tiny();
+        let g = Generator::new(&vs.root(), &cfg).unwrap();
+        vs.double();
+        let cam = CameraConfig::chair();
+        let z = Tensor::randn([5, 8], (Kind::Double, Device::Cpu));
+        let lat = g.latents(&z, &z, None).unwrap();
+        let angles: Vec<(f64, f64)> = (0..5).map(|i| (1.0 + 0.1 * i as f64, -2.0 + 0.9 * i as f64)).collect();
+        let poses = Poses::from_angles(&angles, Kind::Double, Device::Cpu);
+        let noise = Noise {
+            jitter: Some(Tensor::rand([5, 36, 6], (Kind::Double, Device::Cpu))),
+            importance: Some(Tensor::rand([5, 36, 6], (Kind::Double, Device::Cpu))),
+        };
+        // 12 samples a ray, 36 rays an image: 432 points per image.
+        let render = |chunk_points: usize| {
+            let rc = RenderConfig { num_steps: 6, chunk_points, ..Default::default() };
+            Renderer::new(&g, &cam, &rc).unwrap().render_image(&lat, &poses, 6, &noise).unwrap()
+        };
+        let one = render(432);
+        for (chunk_points, group) in
+            [(100, "rays of one image a chunk"), (864, "2 images"), (1296, "3 images, then 2"), (1 << 20, "all 5")]
+        {
+            let grouped = render(chunk_points);
+            for (what, a, b) in [
+                ("rgb", &grouped.rgb, &one.rgb),
+                ("depth", &grouped.depth, &one.depth),
+                ("opacity", &grouped.opacity, &one.opacity),
+            ] {
+                assert_eq!(a.size(), b.size(), "{group}: {what}");
+                assert!(
+                    a.allclose(b, 1e-12, 1e-12, false),
+                    "{group}: {what} differs by {}",
+                    f64::try_from((a - b).abs().max()).unwrap()
+                );
+            }
+        }
     }
 
     /// bfloat16 hidden layers change the image by a few bf16 ulps of colour, never to
