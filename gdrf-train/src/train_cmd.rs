@@ -275,12 +275,14 @@ pub fn train(a: TrainArgs) -> Result<()> {
     }
 
     let gen_bar = if writer { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
-    // The writer generates a missing procedural dataset while the other ranks wait, then
-    // they find it finished: two generators rewriting the same PNGs let a rank read an
-    // image another was still writing (seen as "empty file").
-    let prepared = if writer { trainer.prepare_data(&|| gen_bar.inc(1))? } else { gdrf_core::data::Prepared::Existing };
+    // The first rank of each machine generates a missing procedural dataset while the
+    // others wait, then they find it finished: two generators rewriting the same PNGs let
+    // a rank read an image another was still writing (seen as "empty file").
+    let first_here = rank.as_ref().is_none_or(|l| l.local_rank == 0);
+    let prepared =
+        if first_here { trainer.prepare_data(&|| gen_bar.inc(1))? } else { gdrf_core::data::Prepared::Existing };
     trainer.barrier()?;
-    if !writer {
+    if !first_here {
         trainer.prepare_data(&|| {})?;
     }
     gen_bar.finish_and_clear();

@@ -99,7 +99,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     /// Renders `res × res` images without gradients, `chunk_points` samples at a time, so
     /// any resolution fits in bounded memory. The reference sampler renders as many whole
     /// images together as fit in one chunk: on a GPU, where every chunk costs the same few
-    /// hundred kernel launches, the coverage term's 512 candidates at 16² took 1.5–1.9 s one
+    /// hundred kernel launches, the coverage term's 512 candidates at 16² took 1.4–1.9 s one
     /// image at a time, against 0.09 s for the rest of a campaign step. The skipping paths
     /// keep one image at a time.
     pub fn render_image(&self, latents: &Latents, poses: &Poses, res: i64, noise: &Noise) -> Result<Image> {
