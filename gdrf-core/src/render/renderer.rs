@@ -106,8 +106,8 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         let group = if self.config.skips_samples() {
             1
         } else {
-            let per_image = self.config.samples_per_ray() as i64 * res * res;
-            (self.config.chunk_points_on(latents.shape.gamma.device()) / per_image.max(1)).max(1)
+            let rays = self.chunk_rays(self.config.samples_per_ray() as i64, 1, latents.shape.gamma.device());
+            (rays / (res * res).max(1)).max(1)
         };
         Ok(self
             .render_image_with(latents, poses, res, noise, group, |_, lat, rays, noise| {
