@@ -13,7 +13,8 @@ one JSON line each:
 
 - opaque_area: the share of pixels whose opacity in front of the far plane (the weights of
   every sample but the last, which the release's delta_final of 1e10 makes opaque on every
-  ray: it paints the background) exceeds 0.5;
+  ray: it paints the background, white for a generator trained on random backgrounds, as
+  gdrf's renderer paints it) exceeds 0.5;
 - white_of_opaque: the share of those pixels whose colour is near white (every channel above
   --threshold): density that looks like background;
 - white_flips_under_swap: the share of opaque pixels that are white under one appearance code
@@ -52,7 +53,8 @@ def render(gen, shape, app, pitch, yaw, res, cam, n):
     b = pitch.shape[0]
     u = ((torch.arange(n, dtype=torch.float32) + 0.5) / n).expand(b, res * res, n)
     img, _, _, samples = ref.render(gen, shape, app, pitch, yaw, res, cam["fov_deg"], cam["ray_start"],
-                                    cam["ray_end"], n, None, u, return_samples=True)
+                                    cam["ray_end"], n, None, u, return_samples=True,
+                                    force_last_white=gen.force_last_white)
     front = samples["weights"][..., :-1, :].sum((-2, -1))
     return (img + 1) / 2, front.reshape(b, res, res)
 

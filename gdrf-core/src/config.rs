@@ -38,6 +38,32 @@ pub struct GeneratorConfig {
     /// density, or fog, by the draw); `zero`: no offset at any width, so every density
     /// starts as the template's.
     pub deform_head_bias: HeadBias,
+    /// What colours each ray's last sample, the one behind the far plane that fills the
+    /// background. `learned` (the release): the template's colour there, which training
+    /// teaches to match the data's background. `random`: trained on real and generated
+    /// images composited on random colours (`gdrf_core::train`), so the generator never
+    /// paints its background: every render paints the last sample white.
+    #[serde(skip_serializing_if = "Background::is_learned")]
+    pub background: Background,
+}
+
+/// What colours the background ([`GeneratorConfig::background`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Background {
+    /// The template field's colour at each ray's last sample (the release).
+    #[default]
+    Learned,
+    /// Random colours in training; white in every render.
+    Random,
+}
+
+impl Background {
+    /// Headers of generators with the release's background stay as they were written before
+    /// the key existed (a generator's identity hashes its header).
+    fn is_learned(&self) -> bool {
+        *self == Background::Learned
+    }
 }
 
 /// How the deformation head's bias starts ([`GeneratorConfig::deform_head_bias`]).
@@ -64,6 +90,7 @@ impl Default for GeneratorConfig {
             deform_scale: 1.0,
             deform_head_frequency: 0.0,
             deform_head_bias: HeadBias::Uniform,
+            background: Background::Learned,
         }
     }
 }

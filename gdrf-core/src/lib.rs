@@ -33,7 +33,7 @@ pub mod render;
 pub mod rng;
 pub mod train;
 
-pub use config::{CameraConfig, GeneratorConfig, PoseDistribution, RenderConfig};
+pub use config::{Background, CameraConfig, GeneratorConfig, PoseDistribution, RenderConfig};
 pub use error::{Error, Result};
 pub use field::generator::{Generator, Latents};
 pub use nn::film::Film;

@@ -93,6 +93,11 @@ pub enum Purpose {
     /// The discriminator's input augmentation, in its step and in the generator's.
     DiscAugment = 27,
     GenAugment = 28,
+    /// The colours real and generated images are composited on (`generator.background =
+    /// "random"`).
+    RealBackground = 29,
+    DiscBackground = 30,
+    GenBackground = 31,
 }
 
 /// A source of uniform and normal tensors.

@@ -407,3 +407,37 @@ fn missing_or_empty_folders_are_errors() {
     let e = load(&tmp.0, &opts(8)).unwrap_err().to_string();
     assert!(e.contains("no images found"), "{e}");
 }
+
+#[test]
+fn alpha_is_kept_area_resized_cached_and_mirrored_with_its_image() {
+    let tmp = TempDir::new("load-alpha").unwrap();
+    let d = tmp.path("imgs");
+    std::fs::create_dir_all(&d).unwrap();
+    // 4 × 4: the left half opaque red, the right half transparent (its colour must not show).
+    let img = ImageBuffer::from_fn(4, 4, |x, _| if x < 2 { Rgba([255u8, 0, 0, 255]) } else { Rgba([0, 0, 255, 0]) });
+    img.save(d.join("a.png")).unwrap();
+    // Half transparent everywhere.
+    ImageBuffer::from_pixel(4, 4, Rgba([0u8, 0, 0, 102])).save(d.join("b.png")).unwrap();
+    let o = LoadOptions { cache: true, ..opts(2) };
+    let ds = load(&d, &o).unwrap();
+    let alpha = ds.alpha.as_ref().expect("alpha is kept where a pixel is transparent");
+    assert_eq!(alpha.size(), [2, 1, 2, 2]);
+    // Each 2 × 2 output pixel is the mean of a 2 × 2 block: exact values, 255·0.4 = 102.
+    assert_eq!(Vec::<u8>::try_from(alpha.view([-1])).unwrap(), [255, 0, 255, 0, 102, 102, 102, 102]);
+    assert_eq!(pixels(&ds, 0), [255, 0, 0, 255, 255, 255, 255, 0, 0, 255, 255, 255]);
+    // The cache holds it too.
+    let again = load(&d, &o).unwrap();
+    assert!(matches!(again.cache, CacheStatus::Hit(_)), "{:?}", again.cache);
+    assert!(again.alpha.as_ref().unwrap().equal(alpha));
+    // A mirrored image comes with its mirrored alpha, in [0, 1].
+    let a = ds.alpha_batch(&[0, 0], Some(&[false, true])).unwrap();
+    let want = Tensor::from_slice(&[1.0f32, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0]).view([2, 1, 2, 2]);
+    assert!(a.equal(&want), "{a}");
+    // Opaque images have none.
+    let opaque = tmp.path("opaque");
+    std::fs::create_dir_all(&opaque).unwrap();
+    solid_rgb(&opaque.join("a.png"), 4, 4, [1, 2, 3]);
+    ImageBuffer::from_pixel(4, 4, Rgba([9u8, 9, 9, 255])).save(opaque.join("b.png")).unwrap();
+    let ds = load(&opaque, &o).unwrap();
+    assert!(ds.alpha.is_none() && ds.alpha_batch(&[0], None).is_none());
+}

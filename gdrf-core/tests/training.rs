@@ -11,6 +11,7 @@ use gdrf_core::disc::DiscKind;
 use gdrf_core::loss::gan::Adversarial;
 use gdrf_core::loss::LossConfig;
 use gdrf_core::train::{run, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
+use gdrf_core::Background;
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use tch::{nn, Device, Kind, Tensor};
@@ -350,8 +351,20 @@ fn a_non_finite_state_is_never_checkpointed() {
 /// two chunks, with R1 due and DiffAugment's draws on.
 #[test]
 fn the_one_render_step_equals_two_renders_of_the_same_images() {
-    let dir = TempDir::new("train-one-render").unwrap();
+    one_render_equals_two_renders("train-one-render", Background::Learned);
+}
+
+/// On random backgrounds the fakes of both steps are composited on the same colours (pairs
+/// of the mode-seeking term sharing one).
+#[test]
+fn the_one_render_step_equals_two_renders_on_random_backgrounds() {
+    one_render_equals_two_renders("train-one-render-random", Background::Random);
+}
+
+fn one_render_equals_two_renders(name: &str, background: Background) {
+    let dir = TempDir::new(name).unwrap();
     let mut cfg = tiny_config(&dir.0, "");
+    cfg.generator.background = background;
     cfg.stages.truncate(1);
     cfg.stages[0].batch_size = 4;
     cfg.stages[0].batch_split = 2;
@@ -656,4 +669,119 @@ fn a_run_directory_missing_its_config_metrics_or_samples_resumes() {
     let steps: Vec<i64> = run::read_metrics(&run_dir).unwrap().iter().filter_map(|l| l["step"].as_i64()).collect();
     assert_eq!(steps, [4, 5]);
     assert_eq!(run::latest_checkpoint(&run_dir).unwrap().0, 6);
+}
+
+/// With `generator.background = "random"` the discriminator sees each real image on a colour
+/// of its own where the alpha is 0, and unchanged where it is 1; a dataset without
+/// transparency is refused, naming it.
+#[test]
+fn random_backgrounds_composite_the_real_images_through_their_alpha() {
+    let dir = TempDir::new("train-random-background").unwrap();
+    // Left half opaque (a colour per image), right half transparent.
+    let halves = dir.path("halves");
+    std::fs::create_dir_all(&halves).unwrap();
+    for i in 0..4u8 {
+        let img = image::ImageBuffer::from_fn(8, 8, |x, _| {
+            if x < 4 {
+                image::Rgba([40 * i, 200, 90, 255])
+            } else {
+                image::Rgba([0, 0, 0, 0])
+            }
+        });
+        img.save(halves.join(format!("{i}.png"))).unwrap();
+    }
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.stages.truncate(1);
+    cfg.data.path = halves;
+    cfg.data.synth = None;
+    cfg.data.require_poses = false;
+    let white = Trainer::new(cfg.clone(), &dir.path("white")).unwrap().judged_real_now().unwrap();
+    cfg.generator.background = Background::Random;
+    let real = Trainer::new(cfg.clone(), &dir.path("random")).unwrap().judged_real_now().unwrap();
+    assert_eq!(real.size(), [2, 3, 8, 8]);
+    let (left, right) = (|t: &Tensor| t.narrow(3, 0, 4), |t: &Tensor| t.narrow(3, 4, 4));
+    assert!(left(&real).equal(&left(&white)), "opaque pixels unchanged");
+    assert_eq!(f64::try_from(right(&white).min()).unwrap(), 1.0, "transparent pixels are white on white");
+    let mut colours = Vec::new();
+    for b in 0..2 {
+        let c: Vec<f64> = (0..3)
+            .map(|k| {
+                let v = right(&real).get(b).get(k);
+                let (lo, hi) = (f64::try_from(v.min()).unwrap(), f64::try_from(v.max()).unwrap());
+                assert_eq!(lo, hi, "image {b}: one colour where the alpha is 0");
+                assert!((-1.0..1.0).contains(&lo), "{lo}");
+                lo
+            })
+            .collect();
+        colours.push(c);
+    }
+    assert_ne!(colours[0], colours[1], "a colour per image");
+
+    let opaque = dir.path("opaque");
+    std::fs::create_dir_all(&opaque).unwrap();
+    for i in 0..4u8 {
+        image::ImageBuffer::from_pixel(8, 8, image::Rgb([i * 50, 9, 9])).save(opaque.join(format!("{i}.png"))).unwrap();
+    }
+    cfg.data.path = opaque.clone();
+    let e = Trainer::new(cfg, &dir.path("bad")).unwrap().step().expect_err("no alpha").to_string();
+    assert!(e.contains(&opaque.display().to_string()) && e.contains("transparent pixel"), "{e}");
+}
+
+/// A run switches to random backgrounds by `--resume --config` (the one [generator] key that
+/// may change), continues exactly after a resume, and exports a generator that says so.
+#[test]
+fn a_run_switches_to_random_backgrounds_and_resumes_exactly() {
+    let dir = TempDir::new("train-switch-background").unwrap();
+    let mut cfg = tiny_config(&dir.0, "");
+    cfg.schedule.total_steps = 2;
+    cfg.schedule.checkpoint_interval = 100;
+    let mut t = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
+    t.prepare_data(&|| {}).unwrap();
+    assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
+    drop(t);
+    copy_dir(&dir.path("a"), &dir.path("b"));
+    let mut random = cfg.clone();
+    random.schedule.total_steps = 10;
+    random.generator.background = Background::Random;
+    let mut other = random.clone();
+    other.generator.hidden_dim = 16;
+    let e = Trainer::resume_with(&dir.path("a"), other).err().unwrap().to_string();
+    assert!(e.contains("[generator]"), "{e}");
+
+    let mut a = Trainer::resume_with(&dir.path("a"), random.clone()).unwrap();
+    let full = run_steps(&mut a, 4);
+    let mut b = Trainer::resume_with(&dir.path("b"), random).unwrap();
+    run_steps(&mut b, 2);
+    drop(b);
+    let mut b = Trainer::resume(&dir.path("b"), None).unwrap();
+    assert_eq!(b.progress().step, 4);
+    let rest = run_steps(&mut b, 2);
+    for (x, y) in full[2..].iter().zip(&rest) {
+        assert_eq!(
+            (x.d_total.to_bits(), x.g_total.to_bits()),
+            (y.d_total.to_bits(), y.g_total.to_bits()),
+            "step {}",
+            x.step
+        );
+    }
+    assert!(same_params(&params(a.generator_vars()), &params(b.generator_vars())));
+    let exported = load_generator(&dir.path("b").join(run::GENERATOR), Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(exported.generator.cfg.background, Background::Random);
+    // The checkpoint written before the switch keeps the background it was trained with.
+    let ckpts = run::list_checkpoints(&dir.path("a")).unwrap();
+    assert_eq!(ckpts.iter().map(|c| c.0).collect::<Vec<_>>(), [2, 6]);
+    let before = load_generator(&ckpts[0].1, Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(before.generator.cfg.background, Background::Learned);
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
 }

@@ -40,6 +40,9 @@ def load(path):
     names = release_parameter_order(g["trunk_layers"], g["color_layers"], g["deform_layers"])
     state = {n: tensors[release_to_gdrf(n)] for n in names}
     gen.load_state_dict(state)
+    # A generator trained on random backgrounds (generator.background = "random") does not
+    # paint its background: gdrf's renderer paints each ray's last sample white for it.
+    gen.force_last_white = g.get("background", "learned") == "random"
     return gen.eval(), header
 
 
@@ -67,7 +70,7 @@ def render(gen, shape, app, pitch, yaw, res, cam, n, chunk_points):
         z_all, idx = torch.sort(torch.cat([z_f, z_c], -1), -1)
         rgb = torch.gather(torch.cat([rgb_f, rgb_c], -2), 2, idx.unsqueeze(-1).expand(-1, -1, -1, 3))
         sigma = torch.gather(torch.cat([sigma_f, sigma_c], -2), 2, idx.unsqueeze(-1))
-        pixel, _, _, opacity = ref.integrate(rgb, sigma, z_all.unsqueeze(-1))
+        pixel, _, _, opacity = ref.integrate(rgb, sigma, z_all.unsqueeze(-1), force_last_white=gen.force_last_white)
         pixels.append(pixel)
         opacities.append(opacity)
     return torch.cat(pixels, 1).reshape(res, res, 3).permute(2, 0, 1) * 2 - 1

@@ -1,10 +1,10 @@
 //! Decoding one image file to the training format, and listing a folder of images.
 //!
-//! Every image becomes `3 × R × R` 8-bit RGB on white: decoded (PNG or JPEG; grayscale,
-//! palette, 16-bit and alpha variants included) to float RGBA, composited on white with
-//! its alpha, centre-cropped to a square (the shorter side; the longer one loses equal
-//! margins) and resized with an area filter (each output pixel is the exact
-//! area-weighted mean of the input pixels it covers).
+//! Every image becomes `3 × R × R` 8-bit RGB on white and its `R × R` alpha: decoded (PNG
+//! or JPEG; grayscale, palette, 16-bit and alpha variants included) to float RGBA,
+//! composited on white with its alpha, centre-cropped to a square (the shorter side; the
+//! longer one loses equal margins) and resized with an area filter (each output pixel is
+//! the exact area-weighted mean of the input pixels it covers).
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -33,15 +33,16 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
-/// Decodes `path` and returns its pixels as `3 × res × res` bytes (channel-major, rows
-/// top to bottom), RGB composited on white.
+/// Decodes `path` and returns its pixels as `4 × res × res` bytes (channel-major, rows
+/// top to bottom): RGB composited on white, then alpha (255 throughout for an image
+/// without one).
 pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
     let rgba = decode_rgba(path)?;
     let (w, h) = (rgba.width() as usize, rgba.height() as usize);
     // Composite on white in the image's own (sRGB) values, as PIL-prepared data does.
     let side = w.min(h);
     let (x0, y0) = ((w - side) / 2, (h - side) / 2);
-    let mut planes = vec![0f32; 3 * side * side];
+    let mut planes = vec![0f32; 4 * side * side];
     for y in 0..side {
         for x in 0..side {
             let p = rgba.get_pixel((x0 + x) as u32, (y0 + y) as u32).0;
@@ -49,9 +50,10 @@ pub fn load_image(path: &Path, res: usize) -> Result<Vec<u8>> {
             for c in 0..3 {
                 planes[c * side * side + y * side + x] = p[c].clamp(0.0, 1.0) * a + (1.0 - a);
             }
+            planes[3 * side * side + y * side + x] = a;
         }
     }
-    let resized = area_resize(&planes, 3, side, res);
+    let resized = area_resize(&planes, 4, side, res);
     Ok(resized.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect())
 }
 

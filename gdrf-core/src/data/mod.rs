@@ -2,7 +2,8 @@
 //! ([`layouts`], [`folder`]).
 //!
 //! Loading decodes every image once, in parallel, to `3 × R × R` bytes at the training
-//! resolution and keeps them in one `(N, 3, R, R)` uint8 tensor; a cache file at that
+//! resolution and keeps them in one `(N, 3, R, R)` uint8 tensor (and the alpha, where any
+//! image has transparent pixels, in one `(N, 1, R, R)`); a cache file at that
 //! resolution (safetensors, written atomically) makes later loads a single read. Poses
 //! are re-read from their source on every load (cheap), so the cache never holds
 //! stale poses; the cache is rebuilt when any image or pose file changes (names, sizes,
@@ -138,6 +139,9 @@ pub struct Dataset {
     /// `(N, 3, R, R)` uint8, RGB on white. Bytes rather than floats: a quarter of the
     /// memory; [`Dataset::images`] and [`Dataset::batch`] convert.
     pub pixels: Tensor,
+    /// `(N, 1, R, R)` uint8 alpha, where some image has a pixel that is not opaque
+    /// ([`Dataset::alpha_batch`] converts); `None` when every pixel is.
+    pub alpha: Option<Tensor>,
     /// `(N, 2)` float32 `[pitch, yaw]` in radians, when the source has poses.
     pub poses: Option<Tensor>,
     /// File names relative to the dataset folder, aligned with `pixels`.
@@ -175,11 +179,10 @@ impl Dataset {
             return Err(Error::Shape("batch: one flip flag per index expected".into()));
         }
         let idx = Tensor::from_slice(indices);
-        let mut images = to_unit_range(&self.pixels.index_select(0, &idx));
+        let images = flipped(to_unit_range(&self.pixels.index_select(0, &idx)), flips);
         let mut poses = self.poses.as_ref().map(|p| p.index_select(0, &idx));
         if let Some(flips) = flips.filter(|f| f.iter().any(|&x| x)) {
             let mask = Tensor::from_slice(flips).to_kind(Kind::Bool);
-            images = images.flip([3]).where_self(&mask.view([-1, 1, 1, 1]), &images);
             if let Some(p) = &poses {
                 let yaw = p.select(1, 1);
                 let flipped = yaw.neg() + std::f64::consts::PI;
@@ -187,6 +190,24 @@ impl Dataset {
             }
         }
         Ok((images, poses))
+    }
+
+    /// The alpha `(B, 1, R, R)` in [0, 1] of the images [`Dataset::batch`] gives for the same
+    /// arguments (mirrored alike); `None` when every pixel is opaque.
+    pub fn alpha_batch(&self, indices: &[i64], flips: Option<&[bool]>) -> Option<Tensor> {
+        let idx = Tensor::from_slice(indices);
+        self.alpha.as_ref().map(|a| flipped(a.index_select(0, &idx).to_kind(Kind::Float) / 255.0, flips))
+    }
+}
+
+/// `images: (B, C, H, W)` with row b mirrored left↔right where `flips[b]` is set.
+fn flipped(images: Tensor, flips: Option<&[bool]>) -> Tensor {
+    match flips.filter(|f| f.iter().any(|&x| x)) {
+        Some(flips) => {
+            let mask = Tensor::from_slice(flips).to_kind(Kind::Bool);
+            images.flip([3]).where_self(&mask.view([-1, 1, 1, 1]), &images)
+        }
+        None => images,
     }
 }
 
@@ -276,10 +297,8 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
     let res = opts.resolution;
 
     let cached = cache_path.as_deref().and_then(|p| read_cache(p, &fingerprint, res));
-    let (pixels, names, mut skipped, cache) = match cached {
-        Some((pixels, names, skipped)) => {
-            (pixels, names, skipped, CacheStatus::Hit(cache_path.clone().unwrap_or_default()))
-        }
+    let (Decoded { pixels, alpha, names, mut skipped }, cache) = match cached {
+        Some(d) => (d, CacheStatus::Hit(cache_path.clone().unwrap_or_default())),
         None => {
             let decoded = par_try_map(listing.files.len(), opts.threads, |i| {
                 let r = folder::load_image(&listing.files[i], res);
@@ -289,25 +308,36 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
                     r => r.map(Ok),
                 }
             })?;
-            let mut bytes = Vec::with_capacity(decoded.len() * 3 * res * res);
-            let (mut names, mut skipped) = (Vec::new(), Vec::new());
-            for (i, d) in decoded.into_iter().enumerate() {
-                match d {
+            let plane = res * res;
+            let mut d = Decoded {
+                pixels: Vec::with_capacity(decoded.len() * 3 * plane),
+                alpha: Some(Vec::with_capacity(decoded.len() * plane)),
+                names: Vec::new(),
+                skipped: Vec::new(),
+            };
+            for (i, px) in decoded.into_iter().enumerate() {
+                match px {
                     Ok(px) => {
-                        bytes.extend_from_slice(&px);
-                        names.push(listing.names[i].clone());
+                        d.pixels.extend_from_slice(&px[..3 * plane]);
+                        if let Some(a) = d.alpha.as_mut() {
+                            a.extend_from_slice(&px[3 * plane..]);
+                        }
+                        d.names.push(listing.names[i].clone());
                     }
-                    Err(s) => skipped.push(s),
+                    Err(s) => d.skipped.push(s),
                 }
+            }
+            if d.alpha.as_ref().is_some_and(|a| a.iter().all(|&v| v == 255)) {
+                d.alpha = None;
             }
             let status = match &cache_path {
                 None => CacheStatus::Decoded(None),
-                Some(p) => match write_cache(p, &fingerprint, res, &bytes, &names, &skipped) {
+                Some(p) => match write_cache(p, &fingerprint, res, &d) {
                     Ok(()) => CacheStatus::Decoded(Some(p.clone())),
                     Err(e) => CacheStatus::WriteFailed(p.clone(), e.to_string()),
                 },
             };
-            (bytes, names, skipped, status)
+            (d, status)
         }
     };
     if names.is_empty() {
@@ -315,6 +345,7 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
     }
     let n = names.len();
     let pixels = Tensor::from_slice(&pixels).view([n as i64, 3, res as i64, res as i64]);
+    let alpha = alpha.map(|a| Tensor::from_slice(&a).view([n as i64, 1, res as i64, res as i64]));
     let poses = match &listing.poses {
         None => None,
         Some(all) => {
@@ -335,6 +366,7 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
     all_skipped.append(&mut skipped);
     Ok(Dataset {
         pixels: pixels.to_device(Device::Cpu),
+        alpha,
         poses,
         names,
         resolution: res,
@@ -354,7 +386,8 @@ fn fingerprint(opts: &LoadOptions, listing: &layouts::Listing) -> String {
         }
         h = (h ^ 0xff).wrapping_mul(0x0000_0100_0000_01b3); // field separator
     };
-    eat(format!("v1 {} {} {}", listing.layout.name(), opts.resolution, opts.skip_bad).as_bytes());
+    // v2: the cache holds the alpha too.
+    eat(format!("v2 {} {} {}", listing.layout.name(), opts.resolution, opts.skip_bad).as_bytes());
     for f in listing.files.iter().chain(&listing.pose_files) {
         eat(f.to_string_lossy().as_bytes());
         // A file that cannot be stat'ed (a dangling link) fails or is skipped when decoded.
@@ -381,9 +414,18 @@ struct CacheHeader {
 
 const CACHE_KEY: &str = "gdrf_image_cache";
 
-/// The cached pixels, names and skipped files, or None when the cache is missing,
-/// unreadable or out of date (it is then rebuilt).
-fn read_cache(path: &Path, fingerprint: &str, res: usize) -> Option<(Vec<u8>, Vec<String>, Vec<Skipped>)> {
+/// Decoded images: RGB bytes `(N, 3, R, R)`, alpha bytes `(N, 1, R, R)` where some pixel
+/// is not opaque, names, and the files skipped as bad.
+struct Decoded {
+    pixels: Vec<u8>,
+    alpha: Option<Vec<u8>>,
+    names: Vec<String>,
+    skipped: Vec<Skipped>,
+}
+
+/// The cached images, or None when the cache is missing, unreadable or out of date (it is
+/// then rebuilt).
+fn read_cache(path: &Path, fingerprint: &str, res: usize) -> Option<Decoded> {
     let bytes = std::fs::read(path).ok()?;
     let (_, meta) = SafeTensors::read_metadata(&bytes).ok()?;
     let header: CacheHeader = serde_json::from_str(meta.metadata().as_ref()?.get(CACHE_KEY)?).ok()?;
@@ -391,30 +433,37 @@ fn read_cache(path: &Path, fingerprint: &str, res: usize) -> Option<(Vec<u8>, Ve
         return None;
     }
     let st = SafeTensors::deserialize(&bytes).ok()?;
-    let t = st.tensor("pixels").ok()?;
-    let want = [header.names.len(), 3, res, res];
-    (t.dtype() == Dtype::U8 && t.shape() == want).then(|| (t.data().to_vec(), header.names, header.skipped))
+    let n = header.names.len();
+    let read = |name: &str, channels: usize| -> Option<Vec<u8>> {
+        let t = st.tensor(name).ok()?;
+        (t.dtype() == Dtype::U8 && t.shape() == [n, channels, res, res]).then(|| t.data().to_vec())
+    };
+    let alpha = match st.names().contains(&"alpha") {
+        true => Some(read("alpha", 1)?),
+        false => None,
+    };
+    Some(Decoded { pixels: read("pixels", 3)?, alpha, names: header.names, skipped: header.skipped })
 }
 
-fn write_cache(
-    path: &Path,
-    fingerprint: &str,
-    res: usize,
-    pixels: &[u8],
-    names: &[String],
-    skipped: &[Skipped],
-) -> Result<()> {
+fn write_cache(path: &Path, fingerprint: &str, res: usize, d: &Decoded) -> Result<()> {
     let header = CacheHeader {
         fingerprint: fingerprint.into(),
         resolution: res,
-        names: names.to_vec(),
-        skipped: skipped.to_vec(),
+        names: d.names.clone(),
+        skipped: d.skipped.clone(),
     };
     let json = serde_json::to_string(&header)?;
-    let view = TensorView::new(Dtype::U8, vec![names.len(), 3, res, res], pixels)
-        .map_err(|e| Error::Invalid(format!("cache tensor: {e}")))?;
+    let n = d.names.len();
+    let view = |channels: usize, data| {
+        TensorView::new(Dtype::U8, vec![n, channels, res, res], data)
+            .map_err(|e| Error::Invalid(format!("cache tensor: {e}")))
+    };
+    let mut views = vec![("pixels", view(3, d.pixels.as_slice())?)];
+    if let Some(a) = &d.alpha {
+        views.push(("alpha", view(1, a.as_slice())?));
+    }
     let meta: HashMap<String, String> = [(CACHE_KEY.to_string(), json)].into();
-    let bytes = safetensors::tensor::serialize([("pixels", view)], Some(meta))
+    let bytes = safetensors::tensor::serialize(views, Some(meta))
         .map_err(|e| Error::Invalid(format!("cache serialisation: {e}")))?;
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), err: source })?;

@@ -19,6 +19,11 @@ pub trait RadianceField {
     fn radiance(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor;
     /// Dtype and device of the queries.
     fn kind_device(&self) -> (Kind, Device);
+    /// Whether the field colours each ray's last sample (the background); when not, renders
+    /// paint it white ([`crate::config::Background`]).
+    fn paints_background(&self) -> bool {
+        true
+    }
 }
 
 impl RadianceField for generator::Generator {
@@ -31,5 +36,8 @@ impl RadianceField for generator::Generator {
     }
     fn kind_device(&self) -> (Kind, Device) {
         generator::Generator::kind_device(self)
+    }
+    fn paints_background(&self) -> bool {
+        self.cfg.background == crate::config::Background::Learned
     }
 }

@@ -103,6 +103,30 @@ pub fn composite(rgb: &Tensor, sigma: &Tensor, z: &Tensor, o: &CompositeOptions)
     Composite { pixel, depth, weights, opacity }
 }
 
+/// The share `(…, 1)` of each pixel that the background fills: the last sample's weight
+/// where `force_last_white` paints it white, and the light left over where `white_back` adds
+/// white. Composited on colour `c` instead of white, a pixel is `pixel + share · (c − 1)` (up
+/// to the last sample's widening by ε).
+pub fn background_share(weights: &Tensor, opacity: &Tensor, o: &CompositeOptions) -> Tensor {
+    let s = weights.size()[weights.dim() - 2];
+    let last = match o.force_last_white {
+        true => weights.narrow(-2, s - 1, 1).squeeze_dim(-2),
+        false => opacity.zeros_like(),
+    };
+    match o.white_back {
+        true => last - opacity + 1.0,
+        false => last,
+    }
+}
+
+/// Images `(B, 3, H, W)` in [−1, 1] composited on white, recomposited on `colours: (B, 3)` in
+/// [0, 1] through the share `(B, 1, H, W)` of each pixel the background fills (one minus a
+/// real image's alpha; [`background_share`] of a render).
+pub fn on_background(images: &Tensor, share: &Tensor, colours: &Tensor) -> Tensor {
+    let b = colours.size()[0];
+    images + share * (colours.view([b, 3, 1, 1]) - 1.0) * 2.0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -131,5 +155,42 @@ mod tests {
         assert!((c.weights.double_value(&[0, 0, 0]) - 1.0).abs() < 1e-6);
         assert!((c.depth.double_value(&[0, 0]) - 0.6).abs() < 1e-6);
         assert!(f64::try_from(c.opacity.max()).unwrap() <= 1.0 + 1e-6);
+    }
+
+    /// Recompositing a render on white through [`background_share`] gives exactly the
+    /// render whose background (last sample and leftover light) was colour c, for each way
+    /// the leftover light is filled.
+    #[test]
+    fn a_render_on_white_recomposites_on_any_colour() {
+        let opts = (Kind::Double, Device::Cpu);
+        tch::manual_seed(7);
+        // 2 images of 2 × 2 rays, 6 samples each; densities from empty to opaque.
+        let z = Tensor::linspace(0.6, 1.4, 6, opts).view([1, 1, 6, 1]).expand([2, 4, 6, 1], false);
+        let sigma = Tensor::randn([2, 4, 6, 1], opts) * 3.0 - 2.0;
+        let rgb = Tensor::rand([2, 4, 6, 3], opts);
+        let colours = Tensor::from_slice(&[0.1f64, 0.7, 0.3, 0.9, 0.0, 0.5]).view([2, 3]);
+        let planes = |t: &Tensor| t.permute([0, 2, 1]).reshape([2, -1, 2, 2]);
+        let as_image = |pixel: &Tensor| planes(pixel) * 2.0 - 1.0;
+        let base = CompositeOptions { force_last_white: true, widen_eps: 0.0, ..Default::default() };
+        for (what, o) in [
+            ("white_back", CompositeOptions { delta_final: 0.05, ..base }),
+            ("white_back, opaque last", base),
+            ("last_back", CompositeOptions { white_back: false, last_back: true, delta_final: 0.05, ..base }),
+        ] {
+            let c = composite(&rgb, &sigma, &z, &o);
+            let share = background_share(&c.weights, &c.opacity, &o);
+            let got = on_background(&as_image(&c.pixel), &planes(&share), &colours);
+            // The same render with the last sample painted c and the leftover light c.
+            let painted =
+                Tensor::cat(&[rgb.narrow(2, 0, 5), colours.view([2, 1, 1, 3]).expand([2, 4, 1, 3], false)], 2);
+            let plain = CompositeOptions { force_last_white: false, white_back: false, ..o };
+            let r = composite(&painted, &sigma, &z, &plain);
+            let leftover = if o.white_back { -&r.opacity + 1.0 } else { r.opacity.zeros_like() };
+            let want = as_image(&(&r.pixel + leftover * colours.view([2, 1, 3])));
+            let err = f64::try_from((&got - &want).abs().max()).unwrap();
+            assert!(err < 1e-12, "{what}: max error {err}");
+            // And the background does show: the images differ from the ones on white.
+            assert!(f64::try_from((&got - as_image(&c.pixel)).abs().max()).unwrap() > 0.1, "{what}");
+        }
     }
 }

@@ -143,7 +143,13 @@ impl RayColours {
 
 /// Images `(B, 3, res, res)` in [−1, 1] from per-band results in image order.
 pub fn assemble_image(parts: &[RenderedRays], res: i64) -> Tensor {
-    let pixels: Vec<&Tensor> = parts.iter().map(|p| &p.pixel).collect();
-    let b = parts[0].pixel.size()[0];
-    Tensor::cat(&pixels, 1).permute([0, 2, 1]).reshape([b, 3, res, res]) * 2.0 - 1.0
+    let pixels: Vec<Tensor> = parts.iter().map(|p| p.pixel.shallow_clone()).collect();
+    assemble(&pixels, res) * 2.0 - 1.0
+}
+
+/// Images `(B, C, res, res)` from per-band values `(B, R_k, C)` in image order.
+pub fn assemble(bands: &[Tensor], res: i64) -> Tensor {
+    let s = bands[0].size();
+    let (b, c) = (s[0], s[2]);
+    Tensor::cat(bands, 1).permute([0, 2, 1]).reshape([b, c, res, res])
 }

@@ -32,8 +32,11 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         Ok(Self { generator, camera, config, field: FieldOptions::default() })
     }
 
+    /// The config's integration, with the last sample painted white where the field does
+    /// not paint the background.
     pub(crate) fn composite_options(&self) -> CompositeOptions {
-        self.config.into()
+        let o: CompositeOptions = self.config.into();
+        CompositeOptions { force_last_white: o.force_last_white || !self.generator.paints_background(), ..o }
     }
 
     /// View directions fed to the colour branch for every sample: `(B, R·S, 3)`.
@@ -345,6 +348,29 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// A generator that does not paint its background ([`crate::Background::Random`]) renders
+    /// as the same weights with the last sample forced white, and not as they render with the
+    /// field's colour there.
+    #[test]
+    fn a_generator_trained_on_random_backgrounds_renders_its_background_white() {
+        tch::manual_seed(5);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let mut g = Generator::new(&vs.root(), &GeneratorConfig::tiny()).unwrap();
+        let cam = CameraConfig::chair();
+        let z = Tensor::randn([2, 8], (Kind::Float, Device::Cpu));
+        let lat = g.latents(&z, &z, None).unwrap();
+        let poses = Poses::from_angles(&[(1.0, 0.2), (1.3, -2.0)], Kind::Float, Device::Cpu);
+        let noise = Noise::midpoints(2, 36, 6, Device::Cpu);
+        let render = |g: &Generator, force_last_white: bool| {
+            let rc = RenderConfig { num_steps: 6, jitter: false, force_last_white, ..Default::default() };
+            Renderer::new(g, &cam, &rc).unwrap().render_image(&lat, &poses, 6, &noise).unwrap().rgb
+        };
+        let (learned, forced) = (render(&g, false), render(&g, true));
+        assert!(f64::try_from((&learned - &forced).abs().max()).unwrap() > 1e-3);
+        g.cfg.background = crate::Background::Random;
+        assert!(render(&g, false).equal(&forced));
     }
 
     /// bfloat16 hidden layers change the image by a few bf16 ulps of colour, never to

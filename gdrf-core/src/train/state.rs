@@ -4,7 +4,7 @@
 use super::optim::{copy_vars, Adam, Ema};
 use super::{curve, run, Progress, TrainConfig, Trainer, TrainingHeader};
 use crate::checkpoint::{self, Header};
-use crate::{Error, Generator, Result};
+use crate::{Error, Generator, GeneratorConfig, Result};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use tch::{nn, Tensor};
@@ -108,13 +108,17 @@ impl Trainer {
     }
 
     /// Continues the run in `run_dir` under a changed config (a longer schedule, other
-    /// stages, learning rates or loss weights). The networks and the camera must be the
-    /// ones the run was trained with; a difference is an error naming the table. The new
-    /// config is written to RUN_DIR/config.toml and into the following checkpoints.
+    /// stages, learning rates or loss weights, the background the images are judged on).
+    /// The networks and the camera must be the ones the run was trained with; a difference
+    /// is an error naming the table. The new config is written to RUN_DIR/config.toml and
+    /// into the following checkpoints.
     pub fn resume_with(run_dir: &Path, cfg: TrainConfig) -> Result<Self> {
         let mut t = Self::resume(run_dir, Some(&cfg.device))?;
+        // `generator.background` is how the networks are trained and rendered, not what they are.
+        let background = cfg.generator.background;
+        let networks = GeneratorConfig { background, ..t.cfg.generator.clone() };
         for (table, same) in [
-            ("generator", t.cfg.generator == cfg.generator),
+            ("generator", networks == cfg.generator),
             ("discriminator", t.cfg.discriminator == cfg.discriminator),
             ("camera", t.cfg.camera == cfg.camera),
         ] {
@@ -127,6 +131,8 @@ impl Trainer {
         }
         cfg.validate()?;
         t.cfg = cfg;
+        t.generator.cfg.background = background;
+        t.ema_generator.cfg.background = background;
         t.datasets.clear();
         t.permutation = None;
         crate::paths::write_atomic(&run_dir.join(run::CONFIG), t.cfg.to_store().to_toml()?.as_bytes())?;

@@ -6,6 +6,7 @@ use super::parallel::GRADIENT_BUCKET_BYTES;
 use super::{discriminator_judgement, generator_judgement, patch_gradients, Judged};
 use super::{Stage, StepKind, StepReport, Trainer};
 use crate::camera::Poses;
+use crate::config::Background;
 use crate::data::{self, Dataset};
 use crate::disc::augment::AugmentedJudge;
 use crate::disc::Judge;
@@ -13,7 +14,7 @@ use crate::dist::Reduce;
 use crate::loss::coverage::{coverage_gradients, CoverageDraws};
 use crate::loss::deform_reg::reg_ray_count;
 use crate::loss::{Losses, Schedule};
-use crate::render::{Noise, Renderer};
+use crate::render::{assemble, background_share, on_background, Noise, RenderedRays, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{Error, Result};
 use std::time::Instant;
@@ -36,9 +37,23 @@ impl Trainer {
                     reason: "the dataset holds no images".into(),
                 });
             }
+            if self.random_background() && ds.alpha.is_none() {
+                return Err(Error::Data {
+                    path: self.cfg.data.path.clone(),
+                    reason: "no image has a transparent pixel, and generator.background = \"random\" composites \
+                             the real images on random colours through their alpha"
+                        .into(),
+                });
+            }
             self.datasets.insert(res, ds);
         }
         Ok(&self.datasets[&res])
+    }
+
+    /// Whether the discriminator sees every image on a random colour
+    /// ([`Background::Random`]).
+    fn random_background(&self) -> bool {
+        self.cfg.generator.background == Background::Random
     }
 
     fn rng(&self, step: i64, purpose: Purpose) -> StepRng {
@@ -82,7 +97,7 @@ impl Trainer {
         let (b, res) = (stage.batch_size, stage.resolution);
 
         let real_all = self.real_batch(&stage, step)?;
-        let (real, real_poses) = self.judged_real(&real_all);
+        let (real, real_poses) = self.judged_real(&real_all, step);
         let real_poses = real_poses.as_ref();
         let (d, g) = if g_lr <= 0.0 {
             // A discriminator-only stage: no generator render, no gradient, no EMA update.
@@ -90,10 +105,10 @@ impl Trainer {
             (d, Update { total: f64::NAN, terms: Vec::new(), norm: f64::NAN, skipped: false })
         } else if self.cfg.step == StepKind::OneRender {
             let (d, losses) = self.one_render_gradients(&stage, at, &real, real_poses, d_lr)?;
-            (d, self.generator_step(&stage, at, g_lr, &real_all, Some(losses))?)
+            (d, self.generator_step(&stage, at, g_lr, &real_all.on_white, Some(losses))?)
         } else {
             let d = self.discriminator_step(&stage, at, &real, real_poses, d_lr)?;
-            (d, self.generator_step(&stage, at, g_lr, &real_all, None)?)
+            (d, self.generator_step(&stage, at, g_lr, &real_all.on_white, None)?)
         };
 
         let p = &mut self.progress;
@@ -136,7 +151,7 @@ impl Trainer {
     /// The real images of `step`'s global batch at `stage`'s resolution, and their poses
     /// where known (the next `batch_size` positions of the epoch permutations; the counter
     /// moves on in [`Trainer::step`]).
-    fn real_batch(&mut self, stage: &Stage, step: i64) -> Result<(Tensor, Option<Tensor>)> {
+    fn real_batch(&mut self, stage: &Stage, step: i64) -> Result<RealBatch> {
         let (b, res) = (stage.batch_size, stage.resolution);
         let n_real = self.dataset(res)?.len() as i64;
         let idx = self.real_indices(b, n_real);
@@ -144,17 +159,48 @@ impl Trainer {
         let flips: Option<Vec<bool>> =
             ds.flip.map(|_| self.rng(step, Purpose::RealFlips).u64s(b as usize).iter().map(|x| x & 1 == 1).collect());
         let (real, real_poses) = ds.batch(&idx, flips.as_deref())?;
-        Ok((real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))))
+        // The background fills what the alpha leaves.
+        let share = self.random_background().then(|| ds.alpha_batch(&idx, flips.as_deref())).flatten();
+        Ok(RealBatch {
+            on_white: (real.to_device(self.device), real_poses.map(|p| p.to_device(self.device))),
+            background_share: share.map(|a| (-a + 1.0).to_device(self.device)),
+        })
     }
 
-    /// The real images the discriminator judges, of the global batch `real`: all of them
-    /// where every rank judges the global batch, else this rank's rows.
-    fn judged_real(&self, (real, poses): &(Tensor, Option<Tensor>)) -> (Tensor, Option<Tensor>) {
+    /// The real images the discriminator judges, of the global batch `real` (composited on
+    /// `step`'s random colours with [`Background::Random`]): all of them where every rank
+    /// judges the global batch, else this rank's rows.
+    fn judged_real(&self, real: &RealBatch, step: i64) -> (Tensor, Option<Tensor>) {
+        let (images, poses) = &real.on_white;
+        let images = match &real.background_share {
+            Some(share) => {
+                let colours = self.rng(step, Purpose::RealBackground).uniform(&[images.size()[0], 3]);
+                on_background(images, share, &colours)
+            }
+            None => images.shallow_clone(),
+        };
         if self.judges_globally() {
-            (real.shallow_clone(), poses.as_ref().map(Tensor::shallow_clone))
+            (images, poses.as_ref().map(Tensor::shallow_clone))
         } else {
-            (self.own_rows(real, 1), poses.as_ref().map(|p| self.own_rows(p, 1)))
+            (self.own_rows(&images, 1), poses.as_ref().map(|p| self.own_rows(p, 1)))
         }
+    }
+
+    /// Rendered images `img: (B, 3, R, R)` on white, of `parts` rendered by `renderer`,
+    /// composited on `colours: (B, 3)` where given.
+    fn on_colours(
+        &self,
+        img: &Tensor,
+        parts: &[RenderedRays],
+        renderer: &Renderer,
+        colours: Option<&Tensor>,
+    ) -> Tensor {
+        let Some(colours) = colours else {
+            return img.shallow_clone();
+        };
+        let o = renderer.composite_options();
+        let shares: Vec<Tensor> = parts.iter().map(|p| background_share(&p.weights, &p.opacity, &o)).collect();
+        on_background(img, &assemble(&shares, img.size()[2]), colours)
     }
 
     /// The live generator's renderer with sampling config `rc`, at the configured precision.
@@ -165,10 +211,10 @@ impl Trainer {
     }
 
     /// One player's fake batch of `stage` at `step` ([`Draws`]), from the draws
-    /// `[codes, poses, jitter, importance]`.
-    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 4]) -> Draws {
+    /// `[codes, poses, jitter, importance, background]`.
+    fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 5]) -> Draws {
         let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
-        let [codes, poses, jitter, importance] = purposes;
+        let [codes, poses, jitter, importance, background] = purposes;
         let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
         let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, poses));
         let shape = [b, res * res, n];
@@ -185,7 +231,8 @@ impl Trainer {
         } else {
             (rows(&z), poses.narrow(first, n))
         };
-        Draws { z: rows(&z), poses: poses.narrow(first, n), noise, judged_z, judged_poses }
+        let background = self.random_background().then(|| rows(&self.rng(step, background).uniform(&[b, 3])));
+        Draws { z: rows(&z), poses: poses.narrow(first, n), noise, background, judged_z, judged_poses }
     }
 
     /// The discriminator behind the configured augmentation (`[discriminator] augment`),
@@ -204,7 +251,13 @@ impl Trainer {
         real_poses: Option<&Tensor>,
         lr: f64,
     ) -> Result<Update> {
-        let purposes = [Purpose::DiscCodes, Purpose::DiscPoses, Purpose::DiscJitter, Purpose::DiscImportance];
+        let purposes = [
+            Purpose::DiscCodes,
+            Purpose::DiscPoses,
+            Purpose::DiscJitter,
+            Purpose::DiscImportance,
+            Purpose::DiscBackground,
+        ];
         let draws = self.fake_draws(stage, at.step, purposes);
         self.discriminator_step_on(stage, at, real, real_poses, &draws, lr)
     }
@@ -222,12 +275,12 @@ impl Trainer {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
-        let Draws { z, poses, noise, .. } = draws;
-        let fakes = tch::no_grad(|| {
+        let Draws { z, poses, noise, background, .. } = draws;
+        let fakes = tch::no_grad(|| -> Result<Tensor> {
             let lat = self.generator.latents(z, z, None)?;
-            renderer.render_regions(&lat, poses, stage.resolution, stage.regions, noise)
-        })?
-        .0;
+            let (img, parts) = renderer.render_regions(&lat, poses, stage.resolution, stage.regions, noise)?;
+            Ok(self.on_colours(&img, &parts, &renderer, background.as_ref()))
+        })?;
         let fakes = self.judged_rows(&fakes)?;
         let augmented = self.augmented(at.step, Purpose::DiscAugment);
         let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
@@ -353,12 +406,14 @@ impl Trainer {
     /// its codes' alone), the regulariser rays, and whether a fault is injected.
     fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
         let (b, res) = (stage.batch_size, stage.resolution);
-        let purposes = [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance];
+        let purposes =
+            [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance, Purpose::GenBackground];
         let mut fakes = self.fake_draws(stage, step, purposes);
         if self.cfg.loss.diversity_at(step) > 0.0 {
             // Pairs (2i, 2i + 1) of the global batch; a rank's share starts at an even row.
             let pair = |t: &Option<Tensor>| t.as_ref().map(crate::camera::rows_in_pairs);
             fakes.noise = Noise { jitter: pair(&fakes.noise.jitter), importance: pair(&fakes.noise.importance) };
+            fakes.background = pair(&fakes.background);
             fakes.poses = fakes.poses.in_pairs();
             fakes.judged_poses = fakes.judged_poses.in_pairs();
         }
@@ -401,6 +456,7 @@ impl Trainer {
                     let f = &d.fakes;
                     let lat = self.generator.latents(&f.z, &f.z, None)?;
                     let (img, parts) = renderer.render_regions(&lat, &f.poses, stage.resolution, 1, &f.noise)?;
+                    let img = self.on_colours(&img, &parts, &renderer, f.background.as_ref());
                     Ok((d, lat, img, parts))
                 })
                 .collect::<Result<Vec<_>>>()?
@@ -462,10 +518,18 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r))?;
+        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?;
         let (_, losses) =
             self.one_render_gradients(&stage, at, &real, real_poses.as_ref(), d_lr * self.progress.lr_scale)?;
         Ok(losses.values())
+    }
+
+    /// The real images `(B, 3, R, R)` the discriminator judges in the step about to run: on
+    /// white, or with [`Background::Random`] on that step's random colours (tests).
+    pub fn judged_real_now(&mut self) -> Result<Tensor> {
+        let step = self.progress.step;
+        let stage = self.cfg.stage(step).clone();
+        Ok(self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?.0)
     }
 
     /// The release's discriminator step (its own no-grad render) applied to the fakes of
@@ -475,7 +539,7 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r))?;
+        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?;
         let draws = self.generator_draws(&stage, step);
         let lr = d_lr * self.progress.lr_scale;
         self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), &draws.fakes, lr)?;
@@ -492,7 +556,7 @@ impl Trainer {
         draws: &GenDraws,
         split: f64,
     ) -> Result<Losses> {
-        let GenDraws { fakes: Draws { z, poses, noise, judged_z, judged_poses }, reg_rays, inject } = draws;
+        let GenDraws { fakes: Draws { z, poses, noise, background, judged_z, judged_poses }, reg_rays, inject } = draws;
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
@@ -502,7 +566,7 @@ impl Trainer {
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None)?;
             let (img, parts) = renderer.render_regions(&lat, poses, res, 1, noise)?;
-            let img = self.judged_rows(&img)?;
+            let img = self.judged_rows(&self.on_colours(&img, &parts, &renderer, background.as_ref()))?;
             let judged = Judged { img: &img, poses: judged_poses, z: Some(judged_z) };
             let mut losses = generator_judgement(gen, judge, &judged, (&lat, &parts), Some(reg_rays), at, cfg)?;
             losses.total = losses.total.g_mul_scalar(fault);
@@ -577,14 +641,23 @@ impl Trainer {
     }
 }
 
+/// A step's real images ([`Trainer::real_batch`]): the global batch on white with its poses
+/// where known, and with [`Background::Random`] the share `(B, 1, R, R)` of each pixel the
+/// background fills (one minus the alpha).
+struct RealBatch {
+    on_white: (Tensor, Option<Tensor>),
+    background_share: Option<Tensor>,
+}
+
 /// One player's fake batch of a step ([`Trainer::fake_draws`]): this rank's codes
-/// `(n, latent)`, poses and renderer noise, and the codes and poses of the batch the
-/// discriminator judges (the global batch's where every rank judges it, else these:
-/// [`Trainer::judged_rows`]).
+/// `(n, latent)`, poses, renderer noise and (with [`Background::Random`]) background colours
+/// `(n, 3)`, and the codes and poses of the batch the discriminator judges (the global
+/// batch's where every rank judges it, else these: [`Trainer::judged_rows`]).
 struct Draws {
     z: Tensor,
     poses: Poses,
     noise: Noise,
+    background: Option<Tensor>,
     judged_z: Tensor,
     judged_poses: Poses,
 }
@@ -614,6 +687,7 @@ impl GenDraws {
                     jitter: f.noise.jitter.as_ref().map(sl),
                     importance: f.noise.importance.as_ref().map(sl),
                 },
+                background: f.background.as_ref().map(sl),
                 judged_z: f.judged_z.narrow(0, c * judged_len, judged_len),
                 judged_poses: f.judged_poses.narrow(c * judged_len, judged_len),
             },

@@ -295,6 +295,13 @@ impl TrainConfig {
                     st.regions
                 )));
             }
+            if self.generator.background == crate::config::Background::Random && st.regions != 1 {
+                return Err(cfg_err(format!(
+                    "generator.background = \"random\" composites whole rendered images on random colours, but {} is {}: expected 1",
+                    key("regions"),
+                    st.regions
+                )));
+            }
             if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
                 return Err(cfg_err(format!(
                     "{} is {}, expected a positive divisor of the {}² rays",
