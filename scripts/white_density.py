@@ -19,7 +19,9 @@ one JSON line each:
   --threshold): density that looks like background;
 - white_flips_under_swap: the share of opaque pixels that are white under one appearance code
   and not under another (each code's shape with the next code's appearance): silhouette
-  that follows the appearance code.
+  that follows the appearance code;
+- fog: the mean opacity in front of the far plane of the pixels that are not opaque (at
+  most 0.5): thin density over the background, which tints it.
 
 With --dataset, the same shares of the dataset's images (its alpha channel as the opacity,
 the colour composited on white, both resized to the render resolution) come first, as the
@@ -83,6 +85,7 @@ def real_end(dataset, res, threshold, limit):
     if not files:
         sys.exit(f"white_density.py: no images in {dataset}/images")
     opaque = white = total = 0
+    fog = []
     for f in files:
         a = np.asarray(Image.open(f).convert("RGBA").resize((res, res), Image.BILINEAR), np.float32) / 255
         alpha = a[..., 3]
@@ -90,11 +93,12 @@ def real_end(dataset, res, threshold, limit):
             print(f"white_density.py: {f} has no transparent pixel; is the alpha channel kept?", file=sys.stderr)
         rgb = a[..., :3] * alpha[..., None] + (1 - alpha[..., None])
         o = alpha > 0.5
+        fog.append(alpha[~o])
         opaque += o.sum()
         white += (o & (rgb.min(-1) > threshold)).sum()
         total += o.size
     return {"source": dataset, "images": len(files), "opaque_area": float(opaque / total),
-            "white_of_opaque": float(white / max(1, opaque))}
+            "white_of_opaque": float(white / max(1, opaque)), "fog": float(np.concatenate(fog).mean())}
 
 
 def figure(path, gen, cam, z, pitch, yaw, samples, threshold):
@@ -152,7 +156,8 @@ def main():
         print(json.dumps({"source": path, "step": header.get("info", {}).get("step"), "codes": a.codes,
                           "opaque_area": float(opaque.float().mean()),
                           "white_of_opaque": int(white.sum()) / n,
-                          "white_flips_under_swap": int((white ^ white2).sum()) / n}), flush=True)
+                          "white_flips_under_swap": int((white ^ white2).sum()) / n,
+                          "fog": float(op[~opaque].mean())}), flush=True)
     if a.figure:
         k = min(8, a.codes)
         figure(a.figure, gen, cam, z[:k], pitch[:k], yaw[:k], a.samples, a.threshold)
