@@ -107,7 +107,7 @@ pub fn composite(rgb: &Tensor, sigma: &Tensor, z: &Tensor, o: &CompositeOptions)
 /// where `force_last_white` paints it white, and the light left over where `white_back` adds
 /// white. Composited on colour `c` instead of white, a pixel is `pixel + share · (c − 1)` (up
 /// to the last sample's widening by ε).
-pub fn background_share(weights: &Tensor, opacity: &Tensor, o: &CompositeOptions) -> Tensor {
+pub(crate) fn background_share(weights: &Tensor, opacity: &Tensor, o: &CompositeOptions) -> Tensor {
     let s = weights.size()[weights.dim() - 2];
     let last = match o.force_last_white {
         true => weights.narrow(-2, s - 1, 1).squeeze_dim(-2),
@@ -122,7 +122,7 @@ pub fn background_share(weights: &Tensor, opacity: &Tensor, o: &CompositeOptions
 /// Images `(B, 3, H, W)` in [−1, 1] composited on white, recomposited on `colours: (B, 3)` in
 /// [0, 1] through the share `(B, 1, H, W)` of each pixel the background fills (one minus a
 /// real image's alpha; [`background_share`] of a render).
-pub fn on_background(images: &Tensor, share: &Tensor, colours: &Tensor) -> Tensor {
+pub(crate) fn on_background(images: &Tensor, share: &Tensor, colours: &Tensor) -> Tensor {
     let b = colours.size()[0];
     images + share * (colours.view([b, 3, 1, 1]) - 1.0) * 2.0
 }

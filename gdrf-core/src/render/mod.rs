@@ -10,7 +10,8 @@ pub mod sampler;
 pub mod samplers;
 pub mod staged;
 
-pub use composite::{background_share, composite, on_background, weights_from_density, Composite, CompositeOptions};
+pub(crate) use composite::{background_share, on_background};
+pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
 pub use occupancy::{GridConfig, OccupancyGrid};
 pub use rays::{assemble, assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
 pub use renderer::Renderer;
