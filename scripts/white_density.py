@@ -21,7 +21,10 @@ one JSON line each:
   and not under another (each code's shape with the next code's appearance): silhouette
   that follows the appearance code;
 - fog: the mean opacity in front of the far plane of the pixels that are not opaque (at
-  most 0.5): thin density over the background, which tints it.
+  most 0.5): thin density over the background, which tints it;
+- tint: how far those pixels' colour is from the background's white (the mean over them
+  and the channels of 1 - rgb): the fog as it shows. Fog painted white does not show on
+  white, fog in the object's colour does.
 
 With --dataset, the same shares of the dataset's images (its alpha channel as the opacity,
 the colour composited on white, both resized to the render resolution) come first, as the
@@ -85,7 +88,7 @@ def real_end(dataset, res, threshold, limit):
     if not files:
         sys.exit(f"white_density.py: no images in {dataset}/images")
     opaque = white = total = 0
-    fog = []
+    fog, tint = [], []
     for f in files:
         a = np.asarray(Image.open(f).convert("RGBA").resize((res, res), Image.BILINEAR), np.float32) / 255
         alpha = a[..., 3]
@@ -94,11 +97,13 @@ def real_end(dataset, res, threshold, limit):
         rgb = a[..., :3] * alpha[..., None] + (1 - alpha[..., None])
         o = alpha > 0.5
         fog.append(alpha[~o])
+        tint.append((1 - rgb[~o]).mean(-1))
         opaque += o.sum()
         white += (o & (rgb.min(-1) > threshold)).sum()
         total += o.size
     return {"source": dataset, "images": len(files), "opaque_area": float(opaque / total),
-            "white_of_opaque": float(white / max(1, opaque)), "fog": float(np.concatenate(fog).mean())}
+            "white_of_opaque": float(white / max(1, opaque)), "fog": float(np.concatenate(fog).mean()),
+            "tint": float(np.concatenate(tint).mean())}
 
 
 def figure(path, gen, cam, z, pitch, yaw, samples, threshold):
@@ -157,7 +162,8 @@ def main():
                           "opaque_area": float(opaque.float().mean()),
                           "white_of_opaque": int(white.sum()) / n,
                           "white_flips_under_swap": int((white ^ white2).sum()) / n,
-                          "fog": float(op[~opaque].mean())}), flush=True)
+                          "fog": float(op[~opaque].mean()),
+                          "tint": float((1 - rgb.clamp(0, 1)).mean(1)[~opaque].mean())}), flush=True)
     if a.figure:
         k = min(8, a.codes)
         figure(a.figure, gen, cam, z[:k], pitch[:k], yaw[:k], a.samples, a.threshold)

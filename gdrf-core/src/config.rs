@@ -42,7 +42,8 @@ pub struct GeneratorConfig {
     /// background. `learned` (the release): the template's colour there, which training
     /// teaches to match the data's background. `random`: trained on real and generated
     /// images composited on random colours (`gdrf_core::train`), so the generator never
-    /// paints its background: every render paints the last sample white.
+    /// paints its background: every render paints the last sample white. `corners`: the
+    /// same on colours drawn from the RGB cube's eight corners, where fog shows.
     #[serde(skip_serializing_if = "Background::is_learned")]
     pub background: Background,
 }
@@ -54,15 +55,30 @@ pub enum Background {
     /// The template field's colour at each ray's last sample (the release).
     #[default]
     Learned,
-    /// Random colours in training; white in every render.
+    /// Uniform random colours in training; white in every render.
     Random,
+    /// Random colours from the RGB cube's eight corners (each channel 0 or 1) in training;
+    /// white in every render. A uniform fog of opacity f and colour q turns a uniform
+    /// colour c into (1 − f)·c + f·q, another uniform colour, which the discriminator cannot
+    /// tell from a real background when c is uniform in the cube; it lies off the corners
+    /// for every corner but q itself, so here it shows.
+    Corners,
 }
 
 impl Background {
     /// Headers of generators with the release's background stay as they were written before
     /// the key existed (a generator's identity hashes its header).
-    fn is_learned(&self) -> bool {
+    pub(crate) fn is_learned(&self) -> bool {
         *self == Background::Learned
+    }
+
+    /// The key's value as written in a config.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Background::Learned => "learned",
+            Background::Random => "random",
+            Background::Corners => "corners",
+        }
     }
 }
 

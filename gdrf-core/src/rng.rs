@@ -94,7 +94,7 @@ pub enum Purpose {
     DiscAugment = 27,
     GenAugment = 28,
     /// The colours real and generated images are composited on (`generator.background =
-    /// "random"`).
+    /// "random"` or `"corners"`).
     RealBackground = 29,
     DiscBackground = 30,
     GenBackground = 31,

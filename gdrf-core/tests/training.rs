@@ -676,7 +676,25 @@ fn a_run_directory_missing_its_config_metrics_or_samples_resumes() {
 /// transparency is refused, naming it.
 #[test]
 fn random_backgrounds_composite_the_real_images_through_their_alpha() {
-    let dir = TempDir::new("train-random-background").unwrap();
+    let colours = composites_real_images_through_their_alpha("train-random-background", Background::Random);
+    assert_ne!(colours[0], colours[1], "a colour per image");
+}
+
+/// With `generator.background = "corners"` the same, on corners of the RGB cube: the
+/// uniform colours of `random` rounded to the nearest corner (in the images' [-1, 1]: each
+/// channel's sign).
+#[test]
+fn corner_backgrounds_composite_the_real_images_through_their_alpha() {
+    let uniform = composites_real_images_through_their_alpha("train-uniform-background", Background::Random);
+    let corners = composites_real_images_through_their_alpha("train-corner-background", Background::Corners);
+    let rounded: Vec<Vec<f64>> =
+        uniform.iter().map(|c| c.iter().map(|&v| if v >= 0.0 { 1.0 } else { -1.0 }).collect()).collect();
+    assert_eq!(corners, rounded);
+}
+
+/// The colour `(B, 3)` in [-1, 1] each judged real image shows where its alpha is 0.
+fn composites_real_images_through_their_alpha(name: &str, background: Background) -> Vec<Vec<f64>> {
+    let dir = TempDir::new(name).unwrap();
     // Left half opaque (a colour per image), right half transparent.
     let halves = dir.path("halves");
     std::fs::create_dir_all(&halves).unwrap();
@@ -696,7 +714,7 @@ fn random_backgrounds_composite_the_real_images_through_their_alpha() {
     cfg.data.synth = None;
     cfg.data.require_poses = false;
     let white = Trainer::new(cfg.clone(), &dir.path("white")).unwrap().judged_real_now().unwrap();
-    cfg.generator.background = Background::Random;
+    cfg.generator.background = background;
     let real = Trainer::new(cfg.clone(), &dir.path("random")).unwrap().judged_real_now().unwrap();
     assert_eq!(real.size(), [2, 3, 8, 8]);
     let (left, right) = (|t: &Tensor| t.narrow(3, 0, 4), |t: &Tensor| t.narrow(3, 4, 4));
@@ -709,13 +727,12 @@ fn random_backgrounds_composite_the_real_images_through_their_alpha() {
                 let v = right(&real).get(b).get(k);
                 let (lo, hi) = (f64::try_from(v.min()).unwrap(), f64::try_from(v.max()).unwrap());
                 assert_eq!(lo, hi, "image {b}: one colour where the alpha is 0");
-                assert!((-1.0..1.0).contains(&lo), "{lo}");
+                assert!((-1.0..=1.0).contains(&lo), "{lo}");
                 lo
             })
             .collect();
         colours.push(c);
     }
-    assert_ne!(colours[0], colours[1], "a colour per image");
 
     let opaque = dir.path("opaque");
     std::fs::create_dir_all(&opaque).unwrap();
@@ -725,6 +742,8 @@ fn random_backgrounds_composite_the_real_images_through_their_alpha() {
     cfg.data.path = opaque.clone();
     let e = Trainer::new(cfg, &dir.path("bad")).unwrap().step().expect_err("no alpha").to_string();
     assert!(e.contains(&opaque.display().to_string()) && e.contains("transparent pixel"), "{e}");
+    assert!(e.contains(&format!("\"{}\"", background.name())), "{e}");
+    colours
 }
 
 /// A run switches to random backgrounds by `--resume --config` (the one [generator] key that

@@ -26,7 +26,7 @@ fn number(v: &Value, key: &str) -> f64 {
 fn white_density_counts_what_it_says() {
     let tmp = TempDir::new("white-density").unwrap();
     // An 8×8 "dataset" image (the render resolution below, so it is not resampled): 32 opaque
-    // white pixels, 16 opaque red ones, 8 transparent and 8 at alpha 0.4 (fog 0.2).
+    // white pixels, 16 opaque red ones, 8 transparent and 8 black at alpha 0.4 (fog 0.2).
     std::fs::create_dir_all(tmp.path("data/images")).unwrap();
     let img = image::RgbaImage::from_fn(8, 8, |_, y| match y {
         0..=3 => image::Rgba([255, 255, 255, 255]),
@@ -52,6 +52,9 @@ fn white_density_counts_what_it_says() {
     assert!((number(real, "opaque_area") - 48.0 / 64.0).abs() < 1e-12, "{real}");
     assert!((number(real, "white_of_opaque") - 32.0 / 48.0).abs() < 1e-12, "{real}");
     assert!((number(real, "fog") - 0.2).abs() < 1e-6, "{real}");
+    // The black pixels at alpha 0.4 show as 0.6 on white (tint 0.4), the transparent ones as
+    // white (tint 0).
+    assert!((number(real, "tint") - 0.2).abs() < 1e-6, "{real}");
     assert_eq!(number(model, "codes"), 2.0);
     let area = number(model, "opaque_area");
     for key in ["opaque_area", "white_of_opaque", "white_flips_under_swap"] {
@@ -60,6 +63,8 @@ fn white_density_counts_what_it_says() {
     }
     let fog = number(model, "fog");
     assert!((0.0..=0.5).contains(&fog), "fog = {fog}: the mean opacity of pixels at most half opaque");
+    let tint = number(model, "tint");
+    assert!((0.0..=1.0).contains(&tint), "tint = {tint}");
     // 2 codes at 64², enlarged twice: renders above, opacity below.
     assert_eq!(image::image_dimensions(&figure).unwrap(), (2 * 64 * 2, 2 * 64 * 2));
     // Every channel lies below 1.1 and above −0.1: no opaque pixel is white, or all are, and

@@ -40,9 +40,10 @@ def load(path):
     names = release_parameter_order(g["trunk_layers"], g["color_layers"], g["deform_layers"])
     state = {n: tensors[release_to_gdrf(n)] for n in names}
     gen.load_state_dict(state)
-    # A generator trained on random backgrounds (generator.background = "random") does not
-    # paint its background: gdrf's renderer paints each ray's last sample white for it.
-    gen.force_last_white = g.get("background", "learned") == "random"
+    # A generator trained on random backgrounds (generator.background = "random" or
+    # "corners") does not paint its background: gdrf's renderer paints each ray's last
+    # sample white for it.
+    gen.force_last_white = g.get("background", "learned") != "learned"
     return gen.eval(), header
 
 

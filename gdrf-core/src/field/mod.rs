@@ -38,6 +38,6 @@ impl RadianceField for generator::Generator {
         generator::Generator::kind_device(self)
     }
     fn paints_background(&self) -> bool {
-        self.cfg.background == crate::config::Background::Learned
+        self.cfg.background.is_learned()
     }
 }

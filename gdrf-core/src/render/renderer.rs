@@ -350,7 +350,8 @@ mod tests {
         }
     }
 
-    /// A generator that does not paint its background ([`crate::Background::Random`]) renders
+    /// A generator that does not paint its background ([`crate::Background::Random`],
+    /// [`crate::Background::Corners`]) renders
     /// as the same weights with the last sample forced white, and not as they render with the
     /// field's colour there.
     #[test]
@@ -369,8 +370,10 @@ mod tests {
         };
         let (learned, forced) = (render(&g, false), render(&g, true));
         assert!(f64::try_from((&learned - &forced).abs().max()).unwrap() > 1e-3);
-        g.cfg.background = crate::Background::Random;
-        assert!(render(&g, false).equal(&forced));
+        for background in [crate::Background::Random, crate::Background::Corners] {
+            g.cfg.background = background;
+            assert!(render(&g, false).equal(&forced), "{background:?}");
+        }
     }
 
     /// bfloat16 hidden layers change the image by a few bf16 ulps of colour, never to

@@ -40,9 +40,11 @@ impl Trainer {
             if self.random_background() && ds.alpha.is_none() {
                 return Err(Error::Data {
                     path: self.cfg.data.path.clone(),
-                    reason: "no image has a transparent pixel, and generator.background = \"random\" composites \
-                             the real images on random colours through their alpha"
-                        .into(),
+                    reason: format!(
+                        "no image has a transparent pixel, and generator.background = \"{}\" composites \
+                         the real images on random colours through their alpha",
+                        self.cfg.generator.background.name()
+                    ),
                 });
             }
             self.datasets.insert(res, ds);
@@ -51,9 +53,19 @@ impl Trainer {
     }
 
     /// Whether the discriminator sees every image on a random colour
-    /// ([`Background::Random`]).
+    /// ([`Background::Random`], [`Background::Corners`]).
     fn random_background(&self) -> bool {
-        self.cfg.generator.background == Background::Random
+        !self.cfg.generator.background.is_learned()
+    }
+
+    /// `n` background colours `(n, 3)` in [0, 1] of (seed, `step`, `purpose`): uniform, or
+    /// with [`Background::Corners`] the same draws rounded to the nearest corner.
+    fn background_colours(&self, step: i64, purpose: Purpose, n: i64) -> Tensor {
+        let u = self.rng(step, purpose).uniform(&[n, 3]);
+        match self.cfg.generator.background {
+            Background::Corners => u.ge(0.5).to_kind(u.kind()),
+            _ => u,
+        }
     }
 
     fn rng(&self, step: i64, purpose: Purpose) -> StepRng {
@@ -168,13 +180,13 @@ impl Trainer {
     }
 
     /// The real images the discriminator judges, of the global batch `real` (composited on
-    /// `step`'s random colours with [`Background::Random`]): all of them where every rank
+    /// `step`'s random colours unless the background is [`Background::Learned`]): all of them where every rank
     /// judges the global batch, else this rank's rows.
     fn judged_real(&self, real: &RealBatch, step: i64) -> (Tensor, Option<Tensor>) {
         let (images, poses) = &real.on_white;
         let images = match &real.background_share {
             Some(share) => {
-                let colours = self.rng(step, Purpose::RealBackground).uniform(&[images.size()[0], 3]);
+                let colours = self.background_colours(step, Purpose::RealBackground, images.size()[0]);
                 on_background(images, share, &colours)
             }
             None => images.shallow_clone(),
@@ -231,7 +243,7 @@ impl Trainer {
         } else {
             (rows(&z), poses.narrow(first, n))
         };
-        let background = self.random_background().then(|| rows(&self.rng(step, background).uniform(&[b, 3])));
+        let background = self.random_background().then(|| rows(&self.background_colours(step, background, b)));
         Draws { z: rows(&z), poses: poses.narrow(first, n), noise, background, judged_z, judged_poses }
     }
 
@@ -525,7 +537,7 @@ impl Trainer {
     }
 
     /// The real images `(B, 3, R, R)` the discriminator judges in the step about to run: on
-    /// white, or with [`Background::Random`] on that step's random colours (tests).
+    /// white, or on that step's random colours unless the background is learned (tests).
     pub fn judged_real_now(&mut self) -> Result<Tensor> {
         let step = self.progress.step;
         let stage = self.cfg.stage(step).clone();
@@ -642,7 +654,7 @@ impl Trainer {
 }
 
 /// A step's real images ([`Trainer::real_batch`]): the global batch on white with its poses
-/// where known, and with [`Background::Random`] the share `(B, 1, R, R)` of each pixel the
+/// where known, and with random backgrounds the share `(B, 1, R, R)` of each pixel the
 /// background fills (one minus the alpha).
 struct RealBatch {
     on_white: (Tensor, Option<Tensor>),
@@ -650,7 +662,7 @@ struct RealBatch {
 }
 
 /// One player's fake batch of a step ([`Trainer::fake_draws`]): this rank's codes
-/// `(n, latent)`, poses, renderer noise and (with [`Background::Random`]) background colours
+/// `(n, latent)`, poses, renderer noise and (with random backgrounds) background colours
 /// `(n, 3)`, and the codes and poses of the batch the discriminator judges (the global
 /// batch's where every rank judges it, else these: [`Trainer::judged_rows`]).
 struct Draws {

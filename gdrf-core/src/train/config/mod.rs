@@ -295,9 +295,10 @@ impl TrainConfig {
                     st.regions
                 )));
             }
-            if self.generator.background == crate::config::Background::Random && st.regions != 1 {
+            if !self.generator.background.is_learned() && st.regions != 1 {
                 return Err(cfg_err(format!(
-                    "generator.background = \"random\" composites whole rendered images on random colours, but {} is {}: expected 1",
+                    "generator.background = \"{}\" composites whole rendered images on random colours, but {} is {}: expected 1",
+                    self.generator.background.name(),
                     key("regions"),
                     st.regions
                 )));
