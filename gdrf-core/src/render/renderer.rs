@@ -351,9 +351,8 @@ mod tests {
     }
 
     /// A generator that does not paint its background ([`crate::Background::Random`],
-    /// [`crate::Background::Corners`]) renders
-    /// as the same weights with the last sample forced white, and not as they render with the
-    /// field's colour there.
+    /// [`crate::Background::Corners`]) renders as the same weights with the last sample
+    /// forced white, and not as they render with the field's colour there.
     #[test]
     fn a_generator_trained_on_random_backgrounds_renders_its_background_white() {
         tch::manual_seed(5);

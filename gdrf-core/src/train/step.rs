@@ -180,8 +180,8 @@ impl Trainer {
     }
 
     /// The real images the discriminator judges, of the global batch `real` (composited on
-    /// `step`'s random colours unless the background is [`Background::Learned`]): all of them where every rank
-    /// judges the global batch, else this rank's rows.
+    /// `step`'s random colours unless the background is [`Background::Learned`]): all of
+    /// them where every rank judges the global batch, else this rank's rows.
     fn judged_real(&self, real: &RealBatch, step: i64) -> (Tensor, Option<Tensor>) {
         let (images, poses) = &real.on_white;
         let images = match &real.background_share {
