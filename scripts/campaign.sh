@@ -2,8 +2,9 @@
 # The training campaign (docs/training.md, "The campaign"): one long run of
 # configs/chairs-campaign.toml in the background, resumed every session.
 #
-#   scripts/campaign.sh resume   [RUN_DIR]   continue it in the background at low priority
-#                                            (a fresh clone first copies models/chairs-campaign/run)
+#   scripts/campaign.sh resume   [RUN_DIR]   continue it in the background at low priority, with
+#                                            configs/chairs-campaign-cpu.toml (a fresh clone
+#                                            first copies models/chairs-campaign/run)
 #   scripts/campaign.sh stop     [RUN_DIR]   stop it with a checkpoint (SIGINT), and wait
 #   scripts/campaign.sh status   [RUN_DIR]   step, last log line, the curve's last evaluation
 #   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign/run,
@@ -23,6 +24,7 @@ model=models/chairs-campaign
 shipped=$model/run
 bin="$(dirname "$run")/bin/gdrf-train"
 log="$(dirname "$run")/train.log"
+cpu_config=configs/chairs-campaign-cpu.toml
 
 die() { printf 'campaign: error: %s\n' "$*" >&2; exit 1; }
 running() { pgrep -f -- "gdrf-train --resume $run( |\$)" || true; }
@@ -40,7 +42,10 @@ case "$cmd" in
     cargo build --release --quiet -p gdrf-train
     mkdir -p "$(dirname "$bin")"
     cp target/release/gdrf-train "$bin.tmp" && mv -f "$bin.tmp" "$bin"
-    nohup nice -n 19 "$bin" --resume "$run" --quiet >>"$log" 2>&1 &
+    # With this CPU's config, whatever the run's own config is now: a GPU leg leaves the
+    # GPU's (batch 32) behind, and older states name bfloat16, which a CPU without bfloat16
+    # instructions computes many times slower than float32 ("auto" picks).
+    nohup nice -n 19 "$bin" --resume "$run" --config "$cpu_config" --quiet >>"$log" 2>&1 &
     echo "campaign: resumed $run in the background (pid $!), log $log"
     ;;
   stop)

@@ -300,9 +300,10 @@ pub fn check_generator_size<'a>(
     Ok(())
 }
 
-/// Loads a generator checkpoint onto `device` in `kind` (Float or Double). A training
-/// checkpoint gives its EMA generator (what samples and evaluation use).
-pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedGenerator> {
+/// Reads a generator checkpoint, or a training checkpoint as its EMA generator: the `ema.`
+/// tensors under their generator names and the header a generator exported at that step
+/// carries (model `"generator"`, no training state), size-checked.
+fn load_as_generator(path: &Path) -> Result<Checkpoint> {
     let mut ckpt = load(path)?;
     match ckpt.header.model.as_str() {
         "generator" => {}
@@ -311,6 +312,8 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
                 .into_iter()
                 .filter_map(|(n, t)| n.strip_prefix("ema.").map(|n| (n.to_string(), t)))
                 .collect();
+            ckpt.header.model = "generator".into();
+            ckpt.header.training = None;
         }
         other => {
             return Err(Error::NotACheckpoint {
@@ -320,6 +323,23 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
         }
     }
     check_generator_size(path, &ckpt.header.generator, ckpt.tensors.values())?;
+    Ok(ckpt)
+}
+
+/// Writes to `out` (atomically) the generator of checkpoint `path`: a training
+/// checkpoint's EMA generator, the file its run exported at that step (`gdrf-train ship`
+/// uses it where a run's evaluation folder lost its copy).
+pub fn export_generator(path: &Path, out: &Path) -> Result<Header> {
+    let ckpt = load_as_generator(path)?;
+    let tensors: Vec<(String, Tensor)> = ckpt.tensors.into_iter().collect();
+    save(out, &tensors, &ckpt.header)?;
+    Ok(ckpt.header)
+}
+
+/// Loads a generator checkpoint onto `device` in `kind` (Float or Double). A training
+/// checkpoint gives its EMA generator (what samples and evaluation use).
+pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedGenerator> {
+    let ckpt = load_as_generator(path)?;
     let mut vs = nn::VarStore::new(device);
     let generator = Generator::new(&vs.root(), &ckpt.header.generator)?;
     if kind == Kind::Double {

@@ -50,10 +50,14 @@ enum Command {
     /// `gdrf-train eval`. Training checkpoints give their EMA generator.
     Interpolate(InterpolateArgs),
     /// Copy the generator a run's learning curve ranks best into a model folder: the
-    /// evaluation whose lowest seed-mean position over the calibrated scores (Fréchet and
-    /// kernel distance, coverage, structure, yaw, pitch) is highest, ties to the later step
-    /// (docs/training.md, "The campaign"). Writes DIR/generator.safetensors and
-    /// DIR/seeds.json, that evaluation's scores.
+    /// evaluations that meet the goal on every seed come first (every calibrated position at
+    /// least 0.75, yaw error at most 40°, structure at least 0.75, colour at least its real
+    /// end); among them, or among all while none does, the one whose lowest seed-mean
+    /// position over the calibrated scores (Fréchet and kernel distance, coverage,
+    /// structure, yaw, pitch) is highest, ties to the later step (docs/training.md, "The
+    /// campaign"). Writes DIR/generator.safetensors and DIR/seeds.json, that evaluation's
+    /// scores; where its evaluation folder lost them, from the run's checkpoint of that step
+    /// and the curve.
     Ship(ShipArgs),
 }
 
@@ -257,28 +261,17 @@ fn parse_group_weight(s: &str) -> std::result::Result<(String, f64), String> {
 }
 
 fn ship_cmd(a: ShipArgs) -> Result<()> {
-    use gdrf_core::train::curve;
-    let lines = curve::read(&a.run_dir)?;
-    let Some(best) = curve::best(&lines) else {
-        bail!(
-            "{}: no evaluation with a calibrated score on its curve (curve.jsonl; see [eval] interval)",
-            a.run_dir.display()
-        )
-    };
-    let dir = curve::eval_dir(&a.run_dir, best.step);
-    std::fs::create_dir_all(&a.out).with_context(|| format!("--out {}", a.out.display()))?;
-    for name in ["generator.safetensors", "seeds.json"] {
-        let from = dir.join(name);
-        let bytes = std::fs::read(&from).with_context(|| format!("reading {}", from.display()))?;
-        gdrf_core::paths::write_atomic(&a.out.join(name), &bytes)?;
-    }
+    let shipped = gdrf_core::train::curve::ship(&a.run_dir, &a.out)?;
+    let p = &shipped.point;
     println!(
-        "step {} of {} evaluations: lowest position {:.3} ({}) -> {}",
-        best.step,
-        lines.len(),
-        best.lowest,
-        best.score,
-        a.out.join("generator.safetensors").display()
+        "step {} of {} evaluations: {} the goal on every seed, lowest position {:.3} ({}) -> {} (from {})",
+        p.step,
+        shipped.evaluations,
+        if p.meets_goal { "meets" } else { "short of" },
+        p.lowest,
+        p.score,
+        a.out.join("generator.safetensors").display(),
+        shipped.from.display()
     );
     Ok(())
 }

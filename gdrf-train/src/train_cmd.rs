@@ -2,6 +2,7 @@
 //! handling, progress display and signals around [`gdrf_core::train::Trainer::run`].
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use gdrf_core::train::config::{cpu_has_bf16, Precision};
 use gdrf_core::train::{run, samples, RunLimits, Stopped, TrainConfig, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -305,13 +306,22 @@ pub fn train(a: TrainArgs) -> Result<()> {
         }
         return Ok(());
     }
+    let precision = cfg.precision.on(trainer.device());
     println!(
-        "{} run {} at step {from}/{} on {:?} with {threads} threads{ranks}",
+        "{} run {} at step {from}/{} on {:?} with {threads} threads{ranks}, {}",
         if from == 0 { "starting" } else { "resuming" },
         trainer.run_dir().display(),
         cfg.schedule.total_steps,
-        trainer.device()
+        trainer.device(),
+        serde_json::to_value(precision)?.as_str().unwrap_or("?")
     );
+    if precision == Precision::Bfloat16 && trainer.device() == tch::Device::Cpu && !cpu_has_bf16() {
+        eprintln!(
+            "warning: precision = \"bfloat16\" on a CPU without bfloat16 instructions (AVX512-BF16, AMX): \
+             libtorch multiplies bfloat16 matrices in scalar code there, many times slower than float32; \
+             set precision = \"auto\" or \"float32\""
+        );
+    }
     println!(
         "generator {g_params} parameters, discriminator {d_all} ({d_used} used at {r}²); {n_images} training images from {}",
         cfg.data.path.display(),

@@ -339,13 +339,31 @@ fn probe_learns_and_eval_is_calibrated() {
             .filter_map(|s| s["mean"]["position"].as_f64())
             .fold(f64::INFINITY, f64::min)
     };
+    // A four-step run is far from the goal, so the positions alone decide.
+    assert!(lines.iter().all(|l| !gdrf_core::train::curve::meets_goal(l)), "a four-step run meets the goal?");
     let want = if lowest(&lines[0]) > lowest(&lines[1]) { 2 } else { 4 };
     let shipped = tmp.path("shipped");
     let said = gdrf_train(&["ship", run.to_str().unwrap(), "--out", shipped.to_str().unwrap()]);
-    assert!(said.starts_with(&format!("step {want} of 2 evaluations")), "{said}");
+    assert!(said.starts_with(&format!("step {want} of 2 evaluations: short of the goal")), "{said}");
+    let evaluated = run.join(format!("evals/step-{want:08}"));
     for f in ["generator.safetensors", "seeds.json"] {
         let made = std::fs::read(shipped.join(f)).unwrap();
-        assert_eq!(made, std::fs::read(run.join(format!("evals/step-{want:08}/{f}"))).unwrap(), "{f}");
+        assert_eq!(made, std::fs::read(evaluated.join(f)).unwrap(), "{f}");
+    }
+    // Without the evaluation folder's copies, the same generator comes from the step's
+    // checkpoint, byte for byte, and the same scores from the curve.
+    for f in ["generator.safetensors", "seeds.json"] {
+        std::fs::rename(evaluated.join(f), tmp.path(&format!("kept-{f}"))).unwrap();
+    }
+    let again = tmp.path("shipped-from-checkpoint");
+    let said = gdrf_train(&["ship", run.to_str().unwrap(), "--out", again.to_str().unwrap()]);
+    assert!(said.contains(&format!("checkpoints/step-{want:08}.safetensors")), "{said}");
+    let g = std::fs::read(again.join("generator.safetensors")).unwrap();
+    assert_eq!(g, std::fs::read(shipped.join("generator.safetensors")).unwrap(), "generator from the checkpoint");
+    let json = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p).unwrap()).unwrap();
+    assert_eq!(json(&again.join("seeds.json")), json(&shipped.join("seeds.json")));
+    for f in ["generator.safetensors", "seeds.json"] {
+        std::fs::rename(tmp.path(&format!("kept-{f}")), evaluated.join(f)).unwrap();
     }
     // Resumed from the step-2 checkpoint, the run drops the later evaluation and makes it
     // again, identically.

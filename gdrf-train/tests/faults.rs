@@ -63,7 +63,10 @@ fn temporaries(dir: &Path) -> Vec<PathBuf> {
 fn final_state(run: &Path) -> Option<(serde_json::Value, BTreeMap<String, Vec<u8>>)> {
     let c = gdrf_core::checkpoint::load(&run.join("checkpoints/step-00000010.safetensors")).ok()?;
     let mut header = serde_json::to_value(&c.header).unwrap();
+    // The seconds trained, in the progress and rounded in the header's info, are the one
+    // thing a run may not repeat: on a slow machine they round differently run to run.
     header["training"]["progress"].as_object_mut()?.remove("train_seconds")?;
+    header["info"].as_object_mut()?.remove("train_seconds")?;
     let bytes = |t: &tch::Tensor| {
         let mut v = vec![0u8; t.numel() * t.kind().elt_size_in_bytes()];
         t.copy_data_u8(&mut v, t.numel());

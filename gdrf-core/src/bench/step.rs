@@ -46,7 +46,8 @@ pub struct Options {
     /// cpu, cuda or cuda:N; both implementations run there (default: cpu).
     #[arg(long, default_value = "cpu")]
     pub device: String,
-    /// float32 or bfloat16 (gdrf: `precision`; the reference: bfloat16 autocast).
+    /// float32, bfloat16 or auto (bfloat16 on a CPU with bfloat16 instructions, float32
+    /// elsewhere) (gdrf: `precision`; the reference: bfloat16 autocast).
     /// Default: the config's.
     #[arg(long)]
     pub precision: Option<String>,
@@ -110,7 +111,7 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     }
     let tmp = TempDir::new("bench-step")?;
     let (cfg, notes) = step_config(a, &tmp.0)?;
-    let bf16 = cfg.precision == Precision::Bfloat16;
+    let bf16 = cfg.precision.on(crate::device::select(&a.device)?) == Precision::Bfloat16;
     for n in &notes {
         eprintln!("note: {n}");
     }
@@ -276,7 +277,8 @@ fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
         cfg.precision = match p.as_str() {
             "float32" => Precision::Float32,
             "bfloat16" => Precision::Bfloat16,
-            other => return Err(Error::Invalid(format!("--precision {other}: expected float32 or bfloat16"))),
+            "auto" => Precision::Auto,
+            other => return Err(Error::Invalid(format!("--precision {other}: expected float32, bfloat16 or auto"))),
         };
     }
     let n = cfg.stages.len();

@@ -21,6 +21,9 @@ pub const CURVE: &str = "curve.jsonl";
 pub const CURVE_PLOT: &str = "curve.png";
 pub const FILMSTRIP: &str = "filmstrip.png";
 pub const EVALS: &str = "evals";
+/// Each evaluation's scores over its seeds, in its `evals/step-NNNNNNNN/` folder (as
+/// `gdrf-train eval --seeds` names them).
+const SEEDS: &str = "seeds.json";
 /// Each evaluation's filmstrip row, in its `evals/step-NNNNNNNN/` folder.
 const FRAME: &str = "frame.png";
 
@@ -113,15 +116,21 @@ pub const RULE_SCORES: &[&str] = &[
 #[derive(Debug, Clone, PartialEq)]
 pub struct RulePoint {
     pub step: i64,
+    /// Whether it meets the goal on every seed it was scored on ([`meets_goal`]).
+    pub meets_goal: bool,
     /// The lowest seed-mean position over [`RULE_SCORES`] (scores without a position skipped).
     pub lowest: f64,
     /// The score that holds it.
     pub score: String,
 }
 
-/// The shipping rule, fixed before the campaign's first evaluation (docs/training.md): the
-/// evaluation whose lowest seed-mean position over [`RULE_SCORES`] is highest, ties to the
-/// later step. `None` for a curve without a counted score.
+/// The shipping rule (docs/training.md, "The campaign"): the evaluations that meet the goal
+/// on every seed they were scored on come first; among them (or among all, while none
+/// does) the one whose lowest seed-mean position over [`RULE_SCORES`] is highest, ties to
+/// the later step. The second part was fixed before the campaign's first evaluation; the
+/// first was added at step 100 000, when an evaluation first met the goal and the
+/// positions alone ranked below it one whose swaps fell short of it. `None` for a curve
+/// without a counted score.
 pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
     lines
         .iter()
@@ -134,10 +143,102 @@ pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
                 .filter_map(|s| Some((s["score"].as_str()?.to_string(), s["mean"]["position"].as_f64()?)))
                 .filter(|(_, p)| p.is_finite())
                 .min_by(|a, b| a.1.total_cmp(&b.1))?;
-            Some(RulePoint { step, lowest, score })
+            Some(RulePoint { step, meets_goal: meets_goal(l), lowest, score })
         })
-        .max_by(|a, b| a.lowest.total_cmp(&b.lowest).then(a.step.cmp(&b.step)))
+        .max_by(|a, b| a.meets_goal.cmp(&b.meets_goal).then(a.lowest.total_cmp(&b.lowest)).then(a.step.cmp(&b.step)))
 }
+
+/// What [`ship`] copied.
+#[derive(Debug)]
+pub struct Shipped {
+    pub point: RulePoint,
+    /// Evaluations on the curve.
+    pub evaluations: usize,
+    /// Where the generator came from: its evaluation folder's copy, or the run's checkpoint of
+    /// that step.
+    pub from: PathBuf,
+}
+
+/// Writes the generator [`best`] ranks first into `out` (created when missing) as
+/// generator.safetensors, and its scores as seeds.json, each atomically. Both come from its
+/// evaluation folder; where that folder lost them (a run continued from a committed
+/// snapshot holds its checkpoints and curve, not its evaluation folders), the generator is
+/// the EMA generator of the run's checkpoint of that step, the file its run exported then,
+/// and the scores are the curve's.
+pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
+    let lines = read(run_dir)?;
+    let point = best(&lines).ok_or_else(|| {
+        Error::Invalid(format!(
+            "{}: no evaluation with a calibrated score on its curve ({CURVE}; see [eval] interval)",
+            run_dir.display()
+        ))
+    })?;
+    let dir = eval_dir(run_dir, point.step);
+    let copy = |name: &str| -> Result<Option<()>> {
+        let from = dir.join(name);
+        if !from.is_file() {
+            return Ok(None);
+        }
+        let bytes = std::fs::read(&from).map_err(|err| Error::Io { path: from.clone(), err })?;
+        crate::paths::write_atomic(&out.join(name), &bytes)?;
+        Ok(Some(()))
+    };
+    std::fs::create_dir_all(out).map_err(|err| Error::Io { path: out.to_path_buf(), err })?;
+    let generator = dir.join(run::GENERATOR);
+    let from = if copy(run::GENERATOR)?.is_some() {
+        generator
+    } else {
+        let checkpoint = run_dir.join(run::CHECKPOINTS).join(run::checkpoint_name(point.step));
+        if !checkpoint.is_file() {
+            return Err(Error::Invalid(format!(
+                "the curve ranks step {} first, but neither {} nor {} is there to ship it from",
+                point.step,
+                generator.display(),
+                checkpoint.display()
+            )));
+        }
+        crate::checkpoint::export_generator(&checkpoint, &out.join(run::GENERATOR))?;
+        checkpoint
+    };
+    if copy(SEEDS)?.is_none() {
+        let line = lines.iter().find(|l| l["step"].as_i64() == Some(point.step)).expect("best is one of the lines");
+        crate::paths::write_atomic(&out.join(SEEDS), serde_json::to_string_pretty(&line["scores"])?.as_bytes())?;
+    }
+    Ok(Shipped { point, evaluations: lines.len(), from })
+}
+
+/// Whether a curve line meets the goal (docs/training.md, "The campaign") on every seed
+/// it was scored on: each of [`RULE_SCORES`]' positions at least [`GOAL_POSITION`] where it
+/// has one, the yaw error at most [`GOAL_YAW_DEG`], the structure test at least
+/// [`GOAL_STRUCTURE`], and the colour test at least its real end. A line without the yaw
+/// error or either swap test does not meet it.
+pub fn meets_goal(line: &serde_json::Value) -> bool {
+    let Some(scores) = line["scores"]["scores"].as_array() else { return false };
+    let per_seed = |name: &str, key: &str| -> Option<Vec<Option<f64>>> {
+        let s = scores.iter().find(|s| s["score"] == name)?;
+        let v: Vec<_> = s[key].as_array()?.iter().map(|x| x.as_f64()).collect();
+        (!v.is_empty()).then_some(v)
+    };
+    let positions_meet = RULE_SCORES
+        .iter()
+        .all(|name| per_seed(name, "position").is_none_or(|p| p.iter().flatten().all(|&p| p >= GOAL_POSITION)));
+    let all = |v: Option<Vec<Option<f64>>>, ok: &dyn Fn(f64, usize) -> bool| {
+        v.is_some_and(|v| v.iter().enumerate().all(|(i, x)| x.is_some_and(|x| ok(x, i))))
+    };
+    let colour_real = per_seed("appearance follows j", "real").unwrap_or_default();
+    positions_meet
+        && all(per_seed("pose yaw error deg", "model"), &|x, _| x <= GOAL_YAW_DEG)
+        && all(per_seed("shape follows i", "model"), &|x, _| x >= GOAL_STRUCTURE)
+        && all(per_seed("appearance follows j", "model"), &|x, i| {
+            colour_real.get(i).copied().flatten().is_some_and(|r| x >= r)
+        })
+}
+
+/// What the goal asks of the yaw error, in degrees.
+pub const GOAL_YAW_DEG: f64 = 40.0;
+/// What the goal asks of the structure test: how often a shape swap keeps the shape code's
+/// structure.
+pub const GOAL_STRUCTURE: f64 = 0.75;
 
 /// What the goal asks of every position (docs/training.md, "The campaign").
 pub const GOAL_POSITION: f64 = 0.75;
@@ -223,7 +324,7 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
         Panel { title: "yaw error deg".into(), series: yaw, log_y: false },
         // No goal line: structure's is in the title, and colour's is its real line, which a
         // line at 0.75 would hide whenever the real rate is 0.75 too.
-        Panel { title: format!("swaps following code, goal structure {GOAL_POSITION}"), series: swaps, log_y: false },
+        Panel { title: format!("swaps following code, goal structure {GOAL_STRUCTURE}"), series: swaps, log_y: false },
         Panel {
             title: "seconds per step".into(),
             series: vec![
@@ -350,14 +451,65 @@ mod tests {
             line(20000, &[("pose pitch error deg", Some(0.4)), ("pose yaw error deg", Some(1.2))]),
         ];
         let b = best(&lines).unwrap();
-        assert_eq!(b, RulePoint { step: 15000, lowest: 0.62, score: "kernel distance".into() });
+        assert_eq!(b, RulePoint { step: 15000, meets_goal: false, lowest: 0.62, score: "kernel distance".into() });
         assert_eq!(best(&lines[..2]).unwrap().step, 10000);
         assert_eq!(
             best(&lines[..1]).unwrap(),
-            RulePoint { step: 5000, lowest: 0.23, score: "pose yaw error deg".into() }
+            RulePoint { step: 5000, meets_goal: false, lowest: 0.23, score: "pose yaw error deg".into() }
         );
         assert_eq!(best(&[line(5, &[("appearance follows j", Some(1.0))])]), None);
         assert_eq!(best(&[]), None);
+    }
+
+    /// A curve line scored on two seeds: `frechet` positions, yaw errors in degrees, and the
+    /// structure and colour tests' rates (colour's real end 0.75 on both seeds).
+    fn scored(
+        step: i64,
+        frechet: [Option<f64>; 2],
+        yaw: [f64; 2],
+        structure: [f64; 2],
+        colour: [f64; 2],
+    ) -> serde_json::Value {
+        let mean = |v: [Option<f64>; 2]| v[0].zip(v[1]).map(|(a, b)| (a + b) / 2.0);
+        json!({"step": step, "scores": {"scores": [
+            {"score": "frechet distance", "position": frechet, "mean": {"position": mean(frechet)}},
+            {"score": "pose yaw error deg", "model": yaw, "position": [1.0, 1.0], "mean": {"position": 1.0}},
+            {"score": "shape follows i", "model": structure, "position": [null, null], "mean": {"position": null}},
+            {"score": "appearance follows j", "model": colour, "real": [0.75, 0.75], "position": [null, null],
+             "mean": {"position": null}},
+        ]}})
+    }
+
+    #[test]
+    fn the_goal_is_met_on_every_seed_or_not_at_all() {
+        let good = [Some(0.8), Some(0.9)];
+        assert!(meets_goal(&scored(1, good, [25.0, 40.0], [0.75, 0.9], [0.75, 0.8])));
+        // A position without a span is skipped; one seed short of the goal on any test fails.
+        assert!(meets_goal(&scored(1, [Some(0.8), None], [25.0, 25.0], [0.8, 0.8], [0.8, 0.8])));
+        assert!(!meets_goal(&scored(1, [Some(0.8), Some(0.74)], [25.0, 25.0], [0.8, 0.8], [0.8, 0.8])));
+        assert!(!meets_goal(&scored(1, good, [25.0, 40.5], [0.8, 0.8], [0.8, 0.8])));
+        assert!(!meets_goal(&scored(1, good, [25.0, 25.0], [0.8, 0.74], [0.8, 0.8])));
+        assert!(!meets_goal(&scored(1, good, [25.0, 25.0], [0.8, 0.8], [0.74, 0.8])));
+        // Without the swap tests or the yaw error there is nothing to meet the goal with.
+        assert!(!meets_goal(&line(1, &[("frechet distance", Some(0.9))])));
+        assert!(!meets_goal(&json!({"step": 1})));
+    }
+
+    #[test]
+    fn an_evaluation_that_meets_the_goal_ships_before_higher_positions() {
+        let lines = [
+            scored(60000, [Some(0.91), Some(0.92)], [26.0, 26.0], [0.72, 0.68], [0.62, 0.68]),
+            scored(95000, [Some(0.89), Some(0.9)], [24.0, 26.0], [0.92, 0.88], [0.77, 0.77]),
+            scored(100000, [Some(0.95), Some(0.95)], [25.0, 25.0], [0.87, 0.78], [0.73, 0.84]),
+        ];
+        assert_eq!(
+            best(&lines).unwrap(),
+            RulePoint { step: 95000, meets_goal: true, lowest: (0.89 + 0.9) / 2.0, score: "frechet distance".into() }
+        );
+        // Among those that meet it, the positions decide; while none does, they decide alone.
+        let later = scored(105000, [Some(0.93), Some(0.92)], [25.0, 25.0], [0.8, 0.8], [0.8, 0.8]);
+        assert_eq!(best(&[lines[1].clone(), later]).unwrap().step, 105000);
+        assert_eq!(best(&[lines[0].clone(), lines[2].clone()]).unwrap().step, 100000);
     }
 
     #[test]

@@ -218,7 +218,7 @@ impl Trainer {
     /// The live generator's renderer with sampling config `rc`, at the configured precision.
     fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig) -> Result<Renderer<'a>> {
         let mut r = Renderer::new(&self.generator, &self.cfg.camera, rc)?;
-        r.field.compute_kind = self.cfg.precision.compute_kind();
+        r.field.compute_kind = self.cfg.precision.compute_kind(self.device);
         Ok(r)
     }
 

@@ -11,8 +11,8 @@ use std::path::Path;
 
 mod sections;
 pub use sections::{
-    DebugConfig, EmaConfig, GuardConfig, OptimConfig, Precision, SampleConfig, ScheduleConfig, Stage, StepKind,
-    TrainEvalConfig,
+    cpu_has_bf16, DebugConfig, EmaConfig, GuardConfig, OptimConfig, Precision, SampleConfig, ScheduleConfig, Stage,
+    StepKind, TrainEvalConfig,
 };
 
 /// A whole training run.
@@ -408,6 +408,23 @@ path = "data/x"
 
     fn parse(extra: &str) -> Result<TrainConfig> {
         TrainConfig::from_toml(&format!("{extra}\n{MIN}"), Path::new("/base"))
+    }
+
+    #[test]
+    fn auto_precision_is_bfloat16_only_on_a_cpu_with_bfloat16_instructions() {
+        use tch::{Device, Kind};
+        assert_eq!(parse("precision = \"auto\"").unwrap().precision, Precision::Auto);
+        let cpu = if cpu_has_bf16() { Precision::Bfloat16 } else { Precision::Float32 };
+        assert_eq!(Precision::Auto.on(Device::Cpu), cpu);
+        assert_eq!(Precision::Auto.on(Device::Cuda(0)), Precision::Float32);
+        assert_eq!(Precision::Auto.compute_kind(Device::Cuda(0)), None);
+        // Named precisions are what they say on every device.
+        for d in [Device::Cpu, Device::Cuda(0)] {
+            assert_eq!(Precision::Bfloat16.compute_kind(d), Some(Kind::BFloat16));
+            assert_eq!(Precision::Float32.compute_kind(d), None);
+        }
+        let err = parse("precision = \"half\"").unwrap_err().to_string();
+        assert!(err.contains("precision") && err.contains("auto"), "{err}");
     }
 
     #[test]

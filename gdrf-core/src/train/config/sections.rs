@@ -187,20 +187,49 @@ pub enum Precision {
     #[default]
     Float32,
     /// The generator's hidden SIREN/FiLM layers in bfloat16 (float32 master weights,
-    /// positions, first layers, outputs, integration and discriminator). Meant for GPUs,
-    /// and faster on CPUs with bfloat16 instructions (AVX512-BF16, AMX): 0.77 against
-    /// 1.07 s per `chairs-tiny` step on the developers' 2-core CPU. CPUs without them
-    /// emulate it, slower than float32.
+    /// positions, first layers, outputs, integration and discriminator). Faster on CPUs
+    /// with bfloat16 instructions (AVX512-BF16, AMX): 0.77 against 1.07 s per
+    /// `chairs-tiny` step on a 2-core AMD EPYC with AVX512-BF16. CPUs without them fall
+    /// back to libtorch's scalar matrix product, many times slower than float32 (a
+    /// campaign step took about 15 s against 0.6 on a 2-core EPYC without AVX-512), and
+    /// training warns.
     Bfloat16,
+    /// `bfloat16` on a CPU with bfloat16 instructions, `float32` elsewhere (on a GPU too,
+    /// where bfloat16's casts cost more kernel launches than they save; docs/training.md,
+    /// "On a GPU").
+    Auto,
 }
 
 impl Precision {
-    /// The dtype of the generator's hidden layers (None: the parameters' own).
-    pub fn compute_kind(self) -> Option<tch::Kind> {
+    /// What this precision is on `device`: `Auto` resolved, the others as they are.
+    pub fn on(self, device: tch::Device) -> Precision {
         match self {
-            Precision::Float32 => None,
-            Precision::Bfloat16 => Some(tch::Kind::BFloat16),
+            Precision::Auto if device == tch::Device::Cpu && cpu_has_bf16() => Precision::Bfloat16,
+            Precision::Auto => Precision::Float32,
+            p => p,
         }
+    }
+
+    /// The dtype of the generator's hidden layers on `device` (None: the parameters' own).
+    pub fn compute_kind(self, device: tch::Device) -> Option<tch::Kind> {
+        match self.on(device) {
+            Precision::Bfloat16 => Some(tch::Kind::BFloat16),
+            _ => None,
+        }
+    }
+}
+
+/// Whether this CPU has bfloat16 matrix instructions, without which libtorch computes
+/// bfloat16 matrix products in scalar code. AVX512-BF16 tells: every x86 CPU with AMX-BF16
+/// (whose detection is not yet stable in Rust) has it too.
+pub fn cpu_has_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
     }
 }
 
