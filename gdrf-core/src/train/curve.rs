@@ -128,7 +128,7 @@ pub struct RulePoint {
 /// on every seed they were scored on come first; among them (or among all, while none
 /// does) the one whose lowest seed-mean position over [`RULE_SCORES`] is highest, ties to
 /// the later step. The second part was fixed before the campaign's first evaluation; the
-/// first was added at step 100 000, when an evaluation first met the goal and the
+/// first was added at step 102 067, after an evaluation first met the goal and the
 /// positions alone ranked below it one whose swaps fell short of it. `None` for a curve
 /// without a counted score.
 pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
