@@ -9,7 +9,7 @@ use clap::{Args, Parser, Subcommand};
 use gdrf_core::camera::Poses;
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::nn::mapping::seeded_randn;
-use gdrf_core::render::{GridConfig, Noise, OccupancyGrid, Renderer};
+use gdrf_core::render::{Noise, OccupancyGrid, Renderer};
 use gdrf_core::{io, RenderConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -93,19 +93,8 @@ struct RenderArgs {
     /// samples per ray); 0 shades every sample (the reference sampler).
     #[arg(long, alias = "min-weight", default_value_t = RenderConfig::default().shade_min_weight)]
     shade_min_weight: f64,
-    /// Occupancy grid of this many cells per side, built once per shape seed from the
-    /// shape side alone and reused by its views: rays that meet no occupied cell cost one
-    /// sample, the others are sampled only between their first and last occupied cell.
-    /// 0 = off. See `gdrf-edit bench` for what it gains on a model.
-    #[arg(long, default_value_t = 0)]
-    grid: i64,
-    /// Density above which a grid cell counts as occupied (no denser point lies in an empty cell).
-    #[arg(long, default_value_t = GridConfig::default().threshold)]
-    grid_threshold: f64,
-    /// With --grid: sample only the occupied cells along each ray (empty stretches between
-    /// them count as empty space), not the whole interval from the first to the last.
-    #[arg(long)]
-    grid_cells: bool,
+    #[command(flatten)]
+    grid: gdrf_core::edit::view::GridFlags,
     /// Early ray termination (`render.termination`): a ray stops once its transmittance
     /// falls below this; no pixel moves by more than it. 0 = off.
     #[arg(long, default_value_t = RenderConfig::default().termination)]
@@ -215,18 +204,14 @@ fn render(mut a: RenderArgs) -> Result<()> {
     let start = Instant::now();
     let mut rgb = Vec::with_capacity(total);
     let mut depth = Vec::with_capacity(total);
-    if a.grid_cells && a.grid == 0 {
-        bail!("--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 64)");
-    }
-    let grid_cfg =
-        GridConfig { resolution: a.grid, threshold: a.grid_threshold, cells_only: a.grid_cells, ..Default::default() };
+    let samples_per_shape = (views.len() as i64 * resolution * resolution) as f64 * config.samples_per_ray() as f64;
+    let grid_cfg = a.grid.resolve(samples_per_shape)?;
     for i in 0..a.seeds.len() as i64 {
         let lat = latents.narrow(i, 1);
         // The grid depends on the shape alone: one per seed, shared by its views.
-        let grid = if a.grid > 0 {
-            Some(renderer.occupancy_grid(&lat.shape, grid_cfg).with_context(|| "--grid".to_string())?)
-        } else {
-            None
+        let grid = match grid_cfg {
+            Some(cfg) => Some(renderer.occupancy_grid(&lat.shape, cfg).context("--grid")?),
+            None => None,
         };
         let grids: Vec<&OccupancyGrid> = grid.iter().collect();
         for &v in &views {
@@ -252,15 +237,25 @@ fn render(mut a: RenderArgs) -> Result<()> {
     }
     let samples = total as f64 * (resolution * resolution) as f64 * config.samples_per_ray() as f64;
     println!(
-        "rendered {total} image(s) of {r}×{r} with {s} samples/ray on {dev:?} ({threads} threads) in {secs:.2} s \
+        "rendered {total} image(s) of {r}×{r} with {s} samples/ray{g} on {dev:?} ({threads} threads) in {secs:.2} s \
          ({:.0} ms/image, {:.2} M samples/s) -> {}",
         1000.0 * secs / total as f64,
         samples / secs / 1e6,
         a.out.display(),
         r = resolution,
         s = config.samples_per_ray(),
+        g = grid_note(grid_cfg),
     );
     Ok(())
+}
+
+/// How the renders were sampled, for the closing line: ", in the occupied cells of a 32³ grid".
+pub(crate) fn grid_note(grid: Option<gdrf_core::render::GridConfig>) -> String {
+    match grid {
+        Some(g) if g.cells_only => format!(", in the occupied cells of a {}³ grid", g.resolution),
+        Some(g) => format!(", between the first and last occupied cells of a {}³ grid", g.resolution),
+        None => String::new(),
+    }
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@ use crate::model::{open, resolve, ModelArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
-use gdrf_core::edit::view::ViewArgs;
+use gdrf_core::edit::view::{GridFlags, ViewArgs};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::{io, Latents};
@@ -37,6 +37,8 @@ pub struct SwapArgs {
     /// opacity-NNN.png, through the viridis colour map.
     #[arg(long)]
     maps: bool,
+    #[command(flatten)]
+    grid: GridFlags,
 }
 
 #[derive(Args)]
@@ -95,11 +97,20 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     let mut renderer = Renderer::new(g, &model.camera, &rc)?;
     renderer.field = a.view.field();
     let start = Instant::now();
+    let views = a.view.poses(&model.camera);
+    let pixels = a.view.res() * a.view.res();
+    // One grid for the shape, shared by its views (density never depends on the appearance).
+    let grid_cfg = a.grid.resolve((views.len() as i64 * pixels) as f64 * rc.samples_per_ray() as f64)?;
+    let grid = match grid_cfg {
+        Some(cfg) => Some(renderer.occupancy_grid(&lat.shape, cfg).context("--grid")?),
+        None => None,
+    };
+    let grids: Vec<_> = grid.iter().collect();
     let mut frames = Vec::new();
-    for (k, &pose) in a.view.poses(&model.camera).iter().enumerate() {
+    for (k, &pose) in views.iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
-        let noise = a.view.noise(k, a.view.res() * a.view.res(), model.device);
-        let img = renderer.render_image(&lat, &poses, a.view.res(), &noise)?;
+        let noise = a.view.noise(k, pixels, model.device);
+        let (img, _) = renderer.render_image_in_grids(&lat, &poses, a.view.res(), &noise, &grids)?;
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;
@@ -115,10 +126,11 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     }
     write_sequence(&a.out, &frames)?;
     println!(
-        "shape of {:?} with the appearance of {:?}: {} view(s) of {r}×{r} in {:.2} s ({threads} threads) -> {}",
+        "shape of {:?} with the appearance of {:?}: {} view(s) of {r}×{r}{} in {:.2} s ({threads} threads) -> {}",
         shape_from,
         appearance_from,
         frames.len(),
+        crate::grid_note(grid_cfg),
         start.elapsed().as_secs_f64(),
         a.out.display(),
         r = a.view.res()

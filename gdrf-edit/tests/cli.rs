@@ -110,3 +110,37 @@ fn usage_errors_exit_2_and_runtime_errors_exit_1_naming_what_is_wrong() {
         assert!(stderr(&o).contains("--resolution 4: expected 8 to 4096 pixels"), "{sub:?}: {}", stderr(&o));
     }
 }
+
+#[test]
+fn render_and_swap_build_an_occupancy_grid_where_it_pays() {
+    let dir = TempDir::new("edit-cli-grid").unwrap();
+    let out = dir.path("out");
+    let png = out.with_extension("png");
+    let stdout = |o: &Output| String::from_utf8_lossy(&o.stdout).to_string();
+    let render = |extra: &[&str]| {
+        let o = gdrf_edit(
+            &[&["render", "--seeds", "0", "--device", "cpu", "--out", png.to_str().unwrap()][..], extra].concat(),
+        );
+        assert_eq!(o.status.code(), Some(0), "{extra:?}: {}", stderr(&o));
+        stdout(&o)
+    };
+    // The shipped model renders at 32² with 12 + 12 samples a ray: four views are 98 304
+    // samples (no grid pays), five 122 880 (a 32³ grid does), forty-four 1.08 M (64³).
+    assert!(!render(&["--views", "4"]).contains("occupied cells"));
+    assert!(render(&["--views", "5"]).contains("in the occupied cells of a 32³ grid"));
+    assert!(render(&["--views", "44"]).contains("in the occupied cells of a 64³ grid"));
+    assert!(!render(&["--views", "5", "--grid", "off"]).contains("occupied cells"));
+    assert!(render(&["--grid", "16"]).contains("between the first and last occupied cells of a 16³ grid"));
+    let swap = ["--shape-from", "seed:0", "--appearance-from", "seed:1", "--device", "cpu", "--force"];
+    let o = gdrf_edit(&[&swap[..], &["--views", "5", "--out", out.to_str().unwrap()]].concat());
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    assert!(stdout(&o).contains("in the occupied cells of a 32³ grid"), "{}", stdout(&o));
+    assert!(out.join("frame-004.png").is_file());
+    // Flags that contradict each other, or a size out of range, name the flag.
+    let o = gdrf_edit(&["render", "--grid", "off", "--grid-cells", "--out", png.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--grid-cells"), "{}", stderr(&o));
+    let o = gdrf_edit(&["render", "--grid", "3"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("grid '3'"), "{}", stderr(&o));
+}

@@ -191,6 +191,13 @@ fn settings(res: i64) -> Vec<Setting> {
         s
     };
     let cells = |s: Setting, resolution: i64| fine(s, resolution, true);
+    // Grids are built coarse to fine (from 16³ up, only inside the coarser grid's occupied
+    // cells); `flat` evaluates every lattice point, to show what that build gives up.
+    let flat = |mut s: Setting| {
+        s.name = s.name.replacen(' ', "/flat ", 1);
+        s.grid = s.grid.map(|g| GridConfig { coarse_to_fine: false, ..g });
+        s
+    };
     let thin = |mut s: Setting, concentration: f64, stride: usize| {
         s.name = format!("{}+thin/{stride}@{concentration} N={}", s.name.split(' ').next().unwrap_or(""), s.steps);
         s.thin = (concentration, stride);
@@ -229,6 +236,9 @@ fn settings(res: i64) -> Vec<Setting> {
         cells(s("grid", 8, 0.0, 0.0, 0.0, true), 128),
         cells(s("grid", 6, 0.0, 0.0, 0.0, true), 128),
         cells(s("grid+density-first", 8, 1e-3, 0.0, 0.0, true), 64),
+        flat(cells(s("grid", 12, 0.0, 0.0, 0.0, true), 32)),
+        flat(cells(s("grid", 12, 0.0, 0.0, 0.0, true), 64)),
+        flat(cells(s("grid", 8, 0.0, 0.0, 0.0, true), 128)),
         bf16(s("reference", n, 0.0, 0.0, 0.0, false)),
         bf16(s("density-first", 24, 1e-3, 0.0, 0.0, false)),
     ]
@@ -517,10 +527,11 @@ impl PyTorchRun {
 impl Report {
     /// The README table: per scene and resolution, each configuration's time, speed-up
     /// over the release's sampler in this binary, queries and errors; the PyTorch
-    /// reference's time.
+    /// reference's time. A grid's time is given twice: per image when many views reuse it,
+    /// and for one view per shape (a single swap or render), its build included.
     pub fn markdown(&self) -> String {
         let mut s = String::from(
-            "| scene | size | configuration | ms/image | speed-up | density / colour queries per image | PSNR (dB) | max error | opacity error |\n|---|---|---|---|---|---|---|---|---|\n",
+            "| scene | size | configuration | ms/image | speed-up | grid build ms/shape | speed-up at one view per shape | density / colour queries per image | PSNR (dB) | max error | opacity error |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
         );
         for row in &self.results {
             let base = self
@@ -532,8 +543,15 @@ impl Report {
                         && r.config == format!("reference N={}", release_steps(row.resolution))
                 })
                 .map_or(f64::NAN, |r| r.ms_per_image);
+            let (build, one_view) = match row.grid {
+                Some(_) => (
+                    format!("{:.1}", row.grid_ms_per_shape),
+                    format!("{:.2}×", base / (row.ms_per_image + row.grid_ms_per_shape)),
+                ),
+                None => (String::new(), format!("{:.2}×", base / row.ms_per_image)),
+            };
             s += &format!(
-                "| {} | {}² | {} | {:.1} | {:.2}× | {:.0} / {:.0} | {:.1} | {:.3} | {:.1e} |\n",
+                "| {} | {}² | {} | {:.1} | {:.2}× | {build} | {one_view} | {:.0} / {:.0} | {:.1} | {:.3} | {:.1e} |\n",
                 row.scene,
                 row.resolution,
                 row.config,
@@ -548,7 +566,7 @@ impl Report {
         }
         for p in &self.pytorch {
             s += &format!(
-                "| model | {}² | PyTorch reference, {} | {:.1} | | | | | |\n",
+                "| model | {}² | PyTorch reference, {} | {:.1} | | | | | | | |\n",
                 p.resolution,
                 p.config,
                 p.ms_per_image()

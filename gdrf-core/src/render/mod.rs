@@ -12,7 +12,7 @@ pub mod staged;
 
 pub(crate) use composite::{background_share, on_background};
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
-pub use occupancy::{GridConfig, OccupancyGrid};
+pub use occupancy::{GridChoice, GridConfig, OccupancyGrid, AUTO_GRID_SAMPLES};
 pub use rays::{assemble, assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
 pub use renderer::Renderer;
 pub use staged::ShapeSide;
