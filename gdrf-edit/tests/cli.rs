@@ -140,6 +140,9 @@ fn render_and_swap_build_an_occupancy_grid_where_it_pays() {
     let o = gdrf_edit(&["render", "--grid", "off", "--grid-cells", "--out", png.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     assert!(stderr(&o).contains("--grid-cells"), "{}", stderr(&o));
+    let o = gdrf_edit(&["render", "--grid-threshold=-1", "--out", png.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--grid-threshold -1"), "{}", stderr(&o));
     let o = gdrf_edit(&["render", "--grid", "3"]);
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(stderr(&o).contains("grid '3'"), "{}", stderr(&o));

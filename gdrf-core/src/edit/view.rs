@@ -217,12 +217,11 @@ impl GridFlags {
                 "--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 64)".into(),
             ));
         }
-        if !(self.grid_threshold >= 0.0 && self.grid_threshold.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "--grid-threshold {}: expected a finite density ≥ 0",
-                self.grid_threshold
-            )));
-        }
+        // Checked whether or not `auto` builds a grid this time, naming the flag.
+        GridConfig { threshold: self.grid_threshold, ..GridConfig::default() }.validate().map_err(|e| match e {
+            Error::Invalid(why) => Error::Invalid(format!("--grid-threshold {}: {why}", self.grid_threshold)),
+            other => other,
+        })?;
         Ok(self.grid.resolve(samples, self.grid_threshold, self.grid_cells))
     }
 }
