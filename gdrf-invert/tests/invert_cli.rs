@@ -144,6 +144,25 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     let (res, n, _) = config_of(&["--resolution", "16", "--samples", "4"], "given");
     assert_eq!((res, n), (16, 4));
 
+    // --grid takes gdrf-edit's values. `auto` counts the samples one grid serves: 10 steps
+    // (--grid-refresh) × 32² pixels × 24 samples = 245 760, over 100 000, so a 32³ grid
+    // sampled only in its cells; refreshed every 3 steps, 73 728, so none. Off by default.
+    let grid_of = |extra: &[&str], name: &str| -> (i64, bool) {
+        let dir = tmp.path(name);
+        let mut args = vec![photo.as_str(), "--pose", "62.5,-8.2", "--steps", "2", "--orbit", "0", "--quiet"];
+        args.extend(["--out", dir.to_str().unwrap()]);
+        args.extend(extra);
+        ok(&args);
+        let r: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("invert.json")).unwrap()).unwrap();
+        (r["config"]["grid"].as_i64().unwrap(), r["config"]["grid_cells"].as_bool().unwrap())
+    };
+    assert_eq!(grid_of(&[], "grid-default"), (0, false));
+    assert_eq!(grid_of(&["--grid", "auto"], "grid-auto"), (32, true));
+    assert_eq!(grid_of(&["--grid", "auto", "--grid-refresh", "3"], "grid-auto-3"), (0, false));
+    assert_eq!(grid_of(&["--grid", "16"], "grid-16"), (16, false));
+    assert_eq!(grid_of(&["--grid", "16", "--grid-cells"], "grid-16-cells"), (16, true));
+
     // Bad inputs: each named, and the output folder is never created for them.
     let fresh = tmp.path("never");
     let n = fresh.to_str().unwrap();
@@ -159,6 +178,12 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     fails(&[&photo, "--steps", "3", "--lr=-1", "--out", n], &["invert.lr"]);
     fails(&[&photo, "--refine-pose", "--pose-lr", "0", "--out", n], &["--pose-lr", "degrees"]);
     fails(&[&photo, "--generator", &junk, "--out", n], &["--generator", "junk.png"]);
+    // A value clap refuses (exit status 2, as for any malformed flag), naming the flag.
+    let refused = gdrf_invert(&[&photo, "--grid", "2", "--out", n]);
+    let t = text(&refused);
+    assert_eq!(refused.status.code(), Some(2), "{t}");
+    assert!(t.contains("'2' for '--grid <GRID>'") && t.contains("expected auto, off (or 0)"), "{t}");
+    fails(&[&photo, "--grid-cells", "--out", n], &["--grid-cells", "--grid"]);
     assert!(!fresh.exists(), "a failed run created its output folder");
     // An output folder that holds files is refused without --force.
     fails(&[&photo, "--out", o], &["--force"]);

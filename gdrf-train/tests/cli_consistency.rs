@@ -1,6 +1,6 @@
 //! The three binaries speak one language: `--device` takes the same values everywhere,
-//! `--camera` the same presets, the renderer's noise is seeded by `--noise-seed`, every
-//! angle is in degrees, and a usage error exits 2 while
+//! `--camera` the same presets, the renderer's noise is seeded by `--noise-seed`, an
+//! occupancy grid is `--grid auto|off|N`, every angle is in degrees, and a usage error exits 2 while
 //! a runtime error exits 1 naming the bad file.
 use std::path::PathBuf;
 use std::process::{Command, Output};
@@ -66,12 +66,22 @@ fn device_camera_and_angles_read_the_same_in_every_binary() {
                 assert!(!text.contains("noise"), "{name} {sub:?} {seed} seeds the noise: {text}");
             }
         }
+        // An occupancy grid is asked for in one way: auto, off or a size, with the same
+        // threshold and cells-only flags beside it.
+        if let Some(text) = flag_help(&h, "--grid <GRID>") {
+            assert!(text.contains("`auto`") && text.contains("`off` (or 0)"), "{name} {sub:?} --grid: {text}");
+            for beside in ["--grid-cells", "--grid-threshold <GRID_THRESHOLD>"] {
+                assert!(flag_help(&h, beside).is_some(), "{name} {sub:?} has --grid but no {beside}");
+            }
+        }
         for angle in ["--pitch <PITCH>", "--yaw <YAW>", "--pose <PITCH,YAW>", "--photo-pose <PITCH,YAW>"] {
             if let Some(text) = flag_help(&h, angle) {
                 assert!(text.contains("degrees"), "{name} {sub:?} {angle}: {text}");
             }
         }
     }
+    let with_grid = COMMANDS.iter().filter(|(name, sub)| help(name, sub).contains("--grid <GRID>")).count();
+    assert!(with_grid >= 4, "gdrf-invert, gdrf-edit, its render and swap take --grid; {with_grid} commands do");
     for (name, sub) in [("gdrf-invert", &[][..]), ("gdrf-edit", &["swap"][..]), ("gdrf-edit", &["interp"][..])] {
         let h = help(name, sub);
         let noise =

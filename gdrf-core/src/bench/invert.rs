@@ -13,6 +13,7 @@ use crate::invert::photo::{load_photo, Fit};
 use crate::invert::{load_effnet, render_views, start_for_photo, InvertConfig, Inverter, Perceptual};
 use crate::plot::{draw_panels, Panel, Series};
 use crate::pretrained::effnet::EfficientNetLite0;
+use crate::render::GridChoice;
 use crate::{device, CameraConfig, Error, Generator, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
@@ -34,6 +35,14 @@ pub struct Options {
     /// Held-out objects to invert.
     #[arg(long, default_value_t = 4)]
     pub images: usize,
+    /// Held-out objects passed over before the --images inverted: choose settings on one
+    /// set of objects, report on another.
+    #[arg(long, default_value_t = 0)]
+    pub skip: usize,
+    /// Run only the methods whose name contains one of these (e.g. `grid,samples`); the
+    /// reference and the defaults always run.
+    #[arg(long, value_delimiter = ',')]
+    pub only: Vec<String>,
     /// Novel views per object (yaw offsets spread over the turn, same pitch).
     #[arg(long, default_value_t = 4)]
     pub views: usize,
@@ -76,6 +85,7 @@ pub struct Report {
     pub init: Option<String>,
     pub dataset: String,
     pub images: usize,
+    pub skip: usize,
     pub views: usize,
     pub steps: usize,
     pub reference_steps: usize,
@@ -117,6 +127,8 @@ pub struct Point {
     /// Fraction of the probe's structure classes (legs, back, arms, seat) on the novel
     /// views that match the object's true ones.
     pub structure_agreement: f64,
+    /// The novel-view PSNR of each object, in the order inverted.
+    pub novel_psnr_per_object: Vec<f64>,
 }
 
 struct Case {
@@ -182,12 +194,13 @@ pub fn run(a: &Options) -> Result<Report> {
     let meta = Metadata::load(&a.dataset)?;
     let mut opts = meta.options.clone();
     opts.resolution = a.resolution as usize;
-    let held: Vec<_> = meta.images.iter().filter(|r| r.split == Split::HeldOut).take(a.images).collect();
+    let held: Vec<_> = meta.images.iter().filter(|r| r.split == Split::HeldOut).skip(a.skip).take(a.images).collect();
     if held.len() < a.images {
         return Err(Error::Invalid(format!(
-            "{} has {} held-out images, --images asks for {}",
+            "{} has {} held-out images after --skip {}, --images asks for {}",
             a.dataset.display(),
             held.len(),
+            a.skip,
             a.images
         )));
     }
@@ -260,8 +273,16 @@ pub fn run(a: &Options) -> Result<Report> {
     ));
     methods.push((format!("{tag}, defaults, patience 20"), with_init, InvertConfig { patience: 20, ..d.clone() }));
     methods.push((format!("{tag}, defaults, bf16"), with_init, InvertConfig { bf16: true, ..d.clone() }));
-    // The occupancy grid of the current shape (threshold 5, the best of the CLI
-    // measurements in docs/inversion.md), alone and with half the samples per ray.
+    // The occupancy grid of the current shape: sampling only its occupied cells, at the
+    // size `--grid auto` picks and at both sizes it can pick; and the first-to-last
+    // interval (threshold 5, the best of the CLI measurements in docs/inversion.md), alone
+    // and with half the samples per ray.
+    let auto = d.clone().with_grid(GridChoice::Auto, true);
+    methods.push((format!("{tag}, defaults, grid auto ({}³ cells)", auto.grid), with_init, auto));
+    for cells in [32, 64] {
+        let c = d.clone().with_grid(GridChoice::Cells(cells), true);
+        methods.push((format!("{tag}, defaults, grid {cells} cells"), with_init, c));
+    }
     let grid = InvertConfig { grid: 32, grid_threshold: 5.0, ..d.clone() };
     let half = (a.samples / 2).max(3);
     methods.push((format!("{tag}, defaults, grid 32 (threshold 5)"), with_init, grid.clone()));
@@ -271,6 +292,11 @@ pub fn run(a: &Options) -> Result<Report> {
         InvertConfig { samples: half, ..grid },
     ));
     methods.push((format!("{tag}, defaults, {half} samples"), with_init, InvertConfig { samples: half, ..d }));
+    // The reference and the defaults (the baseline of every speed option) always run.
+    let always = [methods[0].0.clone(), format!("{tag}, defaults")];
+    methods.retain(|(name, ..)| {
+        always.contains(name) || a.only.is_empty() || a.only.iter().any(|o| name.contains(o.as_str()))
+    });
     eprintln!(
         "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),
@@ -292,6 +318,7 @@ pub fn run(a: &Options) -> Result<Report> {
         // Sums over the cases, per checkpoint.
         let checkpoints = checkpoints(cfg.steps);
         let mut sums = vec![[0.0f64; 7]; checkpoints.len()];
+        let mut per_object = vec![Vec::new(); checkpoints.len()];
         for case in &cases {
             let t0 = std::time::Instant::now();
             // At the known pose; the initialiser's own estimate of it is only scored.
@@ -325,6 +352,7 @@ pub fn run(a: &Options) -> Result<Report> {
                     row[k + 1] += s[k];
                 }
                 row[6] += last.0 as f64;
+                per_object[ci].push(s[2]);
             }
         }
         let n = cases.len() as f64;
@@ -340,6 +368,7 @@ pub fn run(a: &Options) -> Result<Report> {
                 novel_psnr: r[3] / n,
                 novel_ssim: r[4] / n,
                 structure_agreement: r[5] / n,
+                novel_psnr_per_object: per_object[ci].clone(),
             });
         }
         // Above the bar, and in logs too (a hidden bar's println writes nothing).
@@ -358,6 +387,7 @@ pub fn run(a: &Options) -> Result<Report> {
         init: a.init.as_deref().map(crate::paths::shown),
         dataset: a.dataset.display().to_string(),
         images: a.images,
+        skip: a.skip,
         views: a.views,
         steps: a.steps,
         reference_steps: a.reference_steps,
@@ -428,10 +458,11 @@ impl Report {
     /// method reaching 95 % of the reference's novel-view PSNR gain.
     pub fn markdown(&self) -> String {
         let (points, methods) = (&self.points, self.methods());
-        let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement |\n|---|---|---|---|---|---|---|---|\n");
+        let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement | novel PSNR per object |\n|---|---|---|---|---|---|---|---|---|\n");
         for p in points {
+            let each: Vec<String> = p.novel_psnr_per_object.iter().map(|v| format!("{v:.2}")).collect();
             md += &format!(
-                "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} |\n",
+                "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {} |\n",
                 p.method,
                 p.steps,
                 p.steps_run,
@@ -440,7 +471,8 @@ impl Report {
                 p.input_ssim,
                 p.novel_psnr,
                 p.novel_ssim,
-                p.structure_agreement
+                p.structure_agreement,
+                each.join(", ")
             );
         }
         // Against the reference (the first method): the novel-view PSNR gain of its last

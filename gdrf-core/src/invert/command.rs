@@ -15,6 +15,7 @@ use crate::eval::fidelity::psnr_all;
 use crate::io::{save_gif, save_png, to_rgb8};
 use crate::plot::draw_panels;
 use crate::pretrained::lpips::{Lpips, LpipsNet};
+use crate::render::GridChoice;
 use crate::{device, Error, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -148,12 +149,18 @@ pub struct Options {
     /// Adam's learning rate of the refined pose, in degrees per step.
     #[arg(long, default_value_t = InvertConfig::default().pose_lr.to_degrees())]
     pub pose_lr: f64,
-    /// Sample each ray only between its first and last cell of an occupancy grid of the
-    /// current shape with this many cells per side (0 = off), rebuilt every
-    /// --grid-refresh steps. Off by default: on the shipped model the grid at the
-    /// default threshold covers nearly every ray (see docs/inversion.md).
-    #[arg(long, default_value_t = InvertConfig::default().grid)]
-    pub grid: i64,
+    /// Occupancy grid of the current shape, rebuilt from w_s every --grid-refresh steps:
+    /// `auto` builds one where it pays, as gdrf-edit's --grid does, counting the samples
+    /// one grid serves (--grid-refresh steps × pixels × samples per ray): a 32³ grid from
+    /// 100 000, a 64³ one from 1 000 000, sampling only its occupied cells. `off` (or 0)
+    /// builds none; a number is the cells per side, each ray sampled between its first and
+    /// last occupied cell (only in the occupied cells with --grid-cells).
+    #[arg(long, default_value = "off")]
+    pub grid: GridChoice,
+    /// With a grid size: sample only the occupied cells along each ray (empty stretches
+    /// between them count as empty space). `auto` always does.
+    #[arg(long)]
+    pub grid_cells: bool,
     /// Steps between rebuilds of the occupancy grid (--grid).
     #[arg(long, default_value_t = InvertConfig::default().grid_refresh)]
     pub grid_refresh: usize,
@@ -219,11 +226,16 @@ pub fn run(a: &Options) -> Result<()> {
         bf16: a.bf16,
         refine_pose: a.refine_pose,
         pose_lr: a.pose_lr.to_radians(),
-        grid: a.grid,
         grid_refresh: a.grid_refresh,
         grid_threshold: a.grid_threshold,
         ..Default::default()
     };
+    if a.grid_cells && a.grid == GridChoice::Off {
+        return Err(Error::Invalid(
+            "--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 32)".into(),
+        ));
+    }
+    let cfg = cfg.with_grid(a.grid, a.grid_cells);
     cfg.validate()?;
     let view_res = a.render_resolution.unwrap_or(resolution);
     if !(4..=1024).contains(&view_res) {
@@ -284,8 +296,16 @@ pub fn run(a: &Options) -> Result<()> {
         }
     };
     let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());
+    let grid = match (cfg.grid, cfg.grid_cells) {
+        (0, _) => String::new(),
+        (g, cells) => format!(
+            ", in a {g}³ occupancy grid ({}, rebuilt every {} steps)",
+            if cells { "its occupied cells" } else { "first to last occupied cell" },
+            cfg.grid_refresh
+        ),
+    };
     eprintln!(
-        "inverting {} at {}²{said} with {} + {} samples per ray, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        "inverting {} at {}²{said} with {} + {} samples per ray{grid}, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
         photo_path.display(),
         resolution,
         samples,

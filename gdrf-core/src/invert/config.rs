@@ -1,4 +1,5 @@
 //! The settings of an inversion, and its defaults where the generator learned.
+use crate::render::GridChoice;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -41,10 +42,14 @@ pub struct InvertConfig {
     /// Adam's learning rate of the pose, in radians.
     pub pose_lr: f64,
     /// Cells per side of an occupancy grid of the current shape (0 = none): each ray is
-    /// sampled only between its first and last occupied cell, and rays that meet none
-    /// from the far end alone. The grid is rebuilt from the current w_s every
-    /// `grid_refresh` steps, so the shape can grow by its dilation per rebuild.
+    /// sampled only between its first and last occupied cell (or, with `grid_cells`, only
+    /// in the occupied cells along it), and rays that meet none from the far end alone.
+    /// The grid is rebuilt from the current w_s every `grid_refresh` steps, so the shape
+    /// can grow by its dilation per rebuild.
     pub grid: i64,
+    /// Sample only the grid's occupied cells along each ray, empty stretches between them
+    /// counting as empty space ([`GridConfig::cells_only`]).
+    pub grid_cells: bool,
     /// Steps between rebuilds of the grid.
     pub grid_refresh: usize,
     /// The grid's density threshold: cells where softplus(σ) stays below it count as
@@ -72,6 +77,7 @@ impl Default for InvertConfig {
             refine_pose: false,
             pose_lr: 0.005,
             grid: 0,
+            grid_cells: false,
             grid_refresh: 10,
             grid_threshold: 0.5,
         }
@@ -89,6 +95,16 @@ impl InvertConfig {
             samples: header.trained_coarse_samples().map_or(d.samples, |n| n as usize),
             ..d
         }
+    }
+
+    /// With the occupancy grid `choice` resolved as gdrf-edit resolves it
+    /// ([`GridChoice::resolve`]) for the samples one grid serves: `grid_refresh` steps of
+    /// `resolution²` rays, each with `samples` coarse and as many importance samples.
+    pub fn with_grid(self, choice: GridChoice, cells_only: bool) -> Self {
+        let rays = (self.resolution * self.resolution) as f64;
+        let samples = self.grid_refresh as f64 * rays * 2.0 * self.samples as f64;
+        let g = choice.resolve(samples, self.grid_threshold, cells_only);
+        Self { grid: g.map_or(0, |g| g.resolution), grid_cells: g.is_some_and(|g| g.cells_only), ..self }
     }
 
     pub fn validate(&self) -> Result<()> {

@@ -353,9 +353,7 @@ impl<F: RadianceField> Renderer<'_, F> {
                 let sub = rays.select_rays(&on);
                 let support = support.index_select(1, &on);
                 let sub = if grid.cfg.cells_only { sub.with_occupied(support) } else { sub.with_bounds(support) };
-                let pick = |t: &Option<Tensor>| t.as_ref().map(|t| t.index_select(1, &on));
-                let noise = Noise { jitter: pick(&noise.jitter), importance: pick(&noise.importance) };
-                put(&on, self.render_bundle(latents, &sub, &noise)?);
+                put(&on, self.render_bundle(latents, &sub, &noise.select_rays(&on))?);
             }
             if off.size()[0] > 0 {
                 put(&off, self.render_far_end(latents, &rays.select_rays(&off)));
@@ -365,8 +363,9 @@ impl<F: RadianceField> Renderer<'_, F> {
     }
 
     /// Rays `(1, K, 3)` shaded from one sample at the camera's far end, integrated with
-    /// the final interval as the reference integrates its last sample.
-    fn render_far_end(&self, latents: &Latents, rays: &Rays) -> RayColours {
+    /// the final interval as the reference integrates its last sample (gradients flow
+    /// where autograd is enabled).
+    pub(crate) fn render_far_end(&self, latents: &Latents, rays: &Rays) -> RayColours {
         let k = rays.num_rays();
         let x = &rays.origins + &rays.dirs * self.camera.ray_end;
         let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);

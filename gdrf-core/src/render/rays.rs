@@ -27,6 +27,12 @@ impl Noise {
         let f = |t: &Option<Tensor>| t.as_ref().map(|t| t.narrow(0, b, nb).narrow(1, start, len));
         Noise { jitter: f(&self.jitter), importance: f(&self.importance) }
     }
+
+    /// The rays `idx` of a one-image bundle's noise `(1, R, N)`.
+    pub(crate) fn select_rays(&self, idx: &Tensor) -> Noise {
+        let f = |t: &Option<Tensor>| t.as_ref().map(|t| t.index_select(1, idx));
+        Noise { jitter: f(&self.jitter), importance: f(&self.importance) }
+    }
 }
 
 /// What the sampler gives: every sample of a bundle with its density and template
