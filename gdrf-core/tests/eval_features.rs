@@ -58,6 +58,22 @@ fn efficientnet_matches_the_pytorch_reference() {
     assert_close("perceptual gradient", &x.grad(), g, atol, 1e-3);
     let same = p.distance(&case["perceptual.y"], &case["perceptual.y"]).unwrap();
     assert_eq!(f64::try_from(same.abs().max()).unwrap(), 0.0);
+    // The inversion prepares the photo's target once, without gradients, and compares each
+    // render with it: the same distance and gradient. One target image serves a batch.
+    let y = &case["perceptual.y"];
+    let target = tch::no_grad(|| p.target(&y.narrow(0, 0, 1))).unwrap();
+    let x1 = case["input_small"].narrow(0, 0, 1).copy().set_requires_grad(true);
+    let d1 = p.to_target(&x1, &target).unwrap();
+    d1.sum(Kind::Float).backward();
+    assert_close("perceptual distance to a prepared target", &d1, &d.narrow(0, 0, 1), 1e-6, 1e-4);
+    assert_close("its gradient", &x1.grad(), &g.narrow(0, 0, 1), atol, 1e-3);
+    let batch = case["input_small"].size()[0];
+    let rows = p.to_target(&case["input_small"], &target).unwrap();
+    assert_eq!(rows.size(), [batch]);
+    // A target prepared at another size is an error, not a panic inside libtorch.
+    let other = EffnetPerceptual { net: &net, size: INPUT_SIZE / 2 };
+    let err = p.to_target(&x1, &tch::no_grad(|| other.target(&y.narrow(0, 0, 1))).unwrap()).unwrap_err();
+    assert!(err.to_string().contains("prepare it from an image of the same size"), "{err}");
 }
 
 /// Renders `n` procedural chairs at 128² into a temporary dataset and loads them.

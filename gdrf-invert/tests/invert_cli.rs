@@ -266,7 +266,7 @@ fn the_initialiser_trains_refuses_another_generator_and_starts_an_inversion() {
     let mut methods: Vec<&str> =
         json["points"].as_array().unwrap().iter().map(|p| p["method"].as_str().unwrap()).collect();
     methods.dedup();
-    assert_eq!(methods.len(), 10, "{methods:?}");
+    assert_eq!(methods.len(), 13, "{methods:?}");
     assert_eq!(methods.iter().filter(|m| m.starts_with("mean code")).count(), 1, "{methods:?}");
     for angle in ["pitch", "yaw"] {
         let e = json["initialiser_pose_error_deg"][angle].as_f64().unwrap();
@@ -310,9 +310,11 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     let points = json["points"].as_array().unwrap();
     let mut methods: Vec<&str> = points.iter().map(|p| p["method"].as_str().unwrap()).collect();
     methods.dedup();
-    // Without --init: the reference and the eight speed options, each from the mean code.
-    assert_eq!(methods.len(), 9, "{methods:?}");
-    assert_eq!(said.matches("done: ").count(), 9, "{said}");
+    // Without --init: the reference, the defaults and ten speed options, each from the mean
+    // code. At 16² and 4 + 4 samples `--grid auto` builds no grid (16 + 16 per refresh).
+    assert_eq!(methods.len(), 12, "{methods:?}");
+    assert_eq!(said.matches("done: ").count(), 12, "{said}");
+    assert!(methods.contains(&"mean code, defaults, grid auto (none at this size)"), "{methods:?}");
     assert!(methods.iter().all(|m| m.starts_with("mean code")), "{methods:?}");
     let last = |m: &str| points.iter().rev().find(|p| p["method"] == m).unwrap()["steps"].as_u64();
     assert_eq!(last(methods[0]), Some(8), "the reference runs --reference-steps");
@@ -320,7 +322,7 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     // Before any step every method holds the same start and is scored the same way, so
     // their rows agree exactly.
     let starts: Vec<&serde_json::Value> = points.iter().filter(|p| p["steps"] == 0).collect();
-    assert_eq!(starts.len(), 9);
+    assert_eq!(starts.len(), 12);
     for p in &starts {
         for key in ["input_psnr", "input_ssim", "novel_psnr", "novel_ssim", "structure_agreement"] {
             assert_eq!(p[key], starts[0][key], "{key} of {} at 0 steps", p["method"]);
@@ -328,4 +330,25 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     }
     let table = std::fs::read_to_string(stem.with_extension("md")).unwrap();
     assert!(table.contains("first point with ≥ 95 % of the gain"), "{table}");
+    assert_eq!(points[0]["novel_psnr_per_object"].as_array().map(Vec::len), Some(1));
+
+    // --only keeps the reference, the defaults and the methods named; --skip passes over
+    // held-out objects, and asking past them names the flag.
+    let meta = gdrf_core::data::Metadata::load(&data).unwrap();
+    let held = meta.images.iter().filter(|r| r.split == gdrf_core::data::Split::HeldOut).count();
+    assert!(held >= 3, "the bench dataset holds {held} held-out images");
+    let (skip, past) = ((held - 2).to_string(), (held - 1).to_string());
+    let only = tmp.path("only");
+    let mut args = vec!["bench", "--dataset", data.to_str().unwrap(), "--views", "1", "--reference-steps", "2"];
+    args.extend(["--steps", "2", "--resolution", "16", "--samples", "4", "--only", "grid 32 cells,bf16"]);
+    args.extend(["--images", "2", "--skip", &skip, "--out", only.to_str().unwrap()]);
+    let said = ok(&args);
+    assert_eq!(said.matches("done: ").count(), 4, "{said}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(only.with_extension("json")).unwrap()).unwrap();
+    assert_eq!(json["skip"].as_u64(), Some(held as u64 - 2));
+    assert_eq!(json["points"][0]["novel_psnr_per_object"].as_array().map(Vec::len), Some(2));
+    let last = args.len() - 1;
+    args[last - 2] = past.as_str();
+    fails(&args, &[&format!("held-out images after --skip {past}"), "--images asks for 2"]);
 }

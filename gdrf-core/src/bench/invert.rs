@@ -278,7 +278,8 @@ pub fn run(a: &Options) -> Result<Report> {
     // interval (threshold 5, the best of the CLI measurements in docs/inversion.md), alone
     // and with half the samples per ray.
     let auto = d.clone().with_grid(GridChoice::Auto, true);
-    methods.push((format!("{tag}, defaults, grid auto ({}³ cells)", auto.grid), with_init, auto));
+    let picked = if auto.grid == 0 { "none at this size".to_string() } else { format!("{}³ cells", auto.grid) };
+    methods.push((format!("{tag}, defaults, grid auto ({picked})"), with_init, auto));
     for cells in [32, 64] {
         let c = d.clone().with_grid(GridChoice::Cells(cells), true);
         methods.push((format!("{tag}, defaults, grid {cells} cells"), with_init, c));

@@ -289,10 +289,7 @@ pub fn run(a: &Options) -> Result<()> {
             };
             let heads = crate::paths::repo_root().join(format!("weights/lpips-{}-heads.safetensors", net.name()));
             lpips = Lpips::load(net, backbone, &heads, dev)?;
-            Some(Perceptual {
-                name: format!("LPIPS ({})", net.name()),
-                distance: Box::new(|x, y| lpips.distance(x, y)),
-            })
+            Some(Perceptual::lpips(&lpips))
         }
     };
     let perc_name = perc.as_ref().map(|p| p.name.clone()).unwrap_or_else(|| "none".into());

@@ -35,6 +35,7 @@ use crate::field::generator::{Generator, TRUNCATION_MEAN_CODES};
 use crate::io::resize;
 use crate::nn::film::Film;
 use crate::pretrained::effnet::EfficientNetLite0;
+use crate::pretrained::lpips::Lpips;
 use crate::pretrained::perceptual::{self, EffnetPerceptual};
 use crate::render::occupancy::{GridConfig, OccupancyGrid};
 use crate::render::{Noise, Renderer};
@@ -44,20 +45,40 @@ use crate::{Error, Latents, Result};
 use serde::Serialize;
 use tch::{Device, Kind, Tensor};
 
-/// `(B,)` distances between two `(B, 3, H, W)` batches in [−1, 1].
-pub type Distance<'a> = Box<dyn Fn(&Tensor, &Tensor) -> Result<Tensor> + 'a>;
+/// A perceptual distance's first stage: the prepared target of a `(1, 3, H, W)` image in
+/// [−1, 1] (its network features).
+pub type PrepareTarget<'a> = Box<dyn Fn(&Tensor) -> Result<Vec<Tensor>> + 'a>;
+/// Its second: `(B,)` distances of `(B, 3, H, W)` images in [−1, 1] to a prepared target.
+pub type ToTarget<'a> = Box<dyn Fn(&Tensor, &[Tensor]) -> Result<Tensor> + 'a>;
 
-/// A perceptual distance with the name the outputs report.
+/// A perceptual distance with the name the outputs report, in two stages: what the
+/// distance needs of the fixed photo (its network features) is computed once per render
+/// size, and each step runs the network on the render alone (forward and backward), not on
+/// the render and the photo together.
 pub struct Perceptual<'a> {
     pub name: String,
-    pub distance: Distance<'a>,
+    pub target: PrepareTarget<'a>,
+    pub to_target: ToTarget<'a>,
 }
 
 impl<'a> Perceptual<'a> {
     /// The offline default: the EfficientNet-Lite0 distance at 224² (LPIPS-style, not LPIPS).
     pub fn effnet(net: &'a EfficientNetLite0) -> Self {
         let d = EffnetPerceptual { net, size: 224 };
-        Self { name: perceptual::NAME.into(), distance: Box::new(move |x, y| d.distance(x, y)) }
+        Self {
+            name: perceptual::NAME.into(),
+            target: Box::new(move |y| d.target(y)),
+            to_target: Box::new(move |x, t| d.to_target(x, t)),
+        }
+    }
+
+    /// Real LPIPS on its backbone (`--perceptual lpips-*`).
+    pub fn lpips(net: &'a Lpips) -> Self {
+        Self {
+            name: format!("LPIPS ({})", net.net().name()),
+            target: Box::new(move |y| net.target(y)),
+            to_target: Box::new(move |x, t| net.to_target(x, t)),
+        }
     }
 }
 
@@ -260,8 +281,8 @@ pub struct Inverter<'a> {
     adam: Adam,
     /// (pitch, yaw) `(2,)` requiring grad, and its optimiser, when the pose is refined.
     pose_param: Option<(Tensor, Adam)>,
-    /// The photo at each render size used.
-    targets: std::collections::BTreeMap<i64, Tensor>,
+    /// The photo at each render size used, and its prepared perceptual target.
+    targets: std::collections::BTreeMap<i64, (Tensor, Option<Vec<Tensor>>)>,
     /// The occupancy grid of the shape (`cfg.grid` > 0) and the step it was built at.
     grid: Option<(usize, OccupancyGrid)>,
     best: f64,
@@ -311,7 +332,15 @@ impl<'a> Inverter<'a> {
         let rc = RenderConfig { num_steps: cfg.samples, ..Default::default() };
         rc.validate()?;
         let photo = photo.to_kind(Kind::Float).to_device(device);
-        let targets = [cfg.resolution_at(0), cfg.resolution].into_iter().map(|r| (r, resize(&photo, r))).collect();
+        let perceptual = perceptual.filter(|_| cfg.perceptual_weight > 0.0);
+        let targets = [cfg.resolution_at(0), cfg.resolution]
+            .into_iter()
+            .map(|r| {
+                let photo = resize(&photo, r);
+                let features = perceptual.map(|pd| tch::no_grad(|| (pd.target)(&photo))).transpose()?;
+                Ok((r, (photo, features)))
+            })
+            .collect::<Result<_>>()?;
         Ok(Self {
             g,
             camera,
@@ -378,10 +407,10 @@ impl<'a> Inverter<'a> {
         }
         let grid = self.grid.as_ref().map(|(_, grid)| grid);
         let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;
-        let target = &self.targets[&res];
+        let (target, features) = &self.targets[&res];
         let mse = (&img - target).square().mean(Kind::Float);
-        let perc = match self.perceptual {
-            Some(pd) if cfg.perceptual_weight > 0.0 => (pd.distance)(&img, target)?.mean(Kind::Float),
+        let perc = match (self.perceptual, features) {
+            (Some(pd), Some(f)) => (pd.to_target)(&img, f)?.mean(Kind::Float),
             _ => Tensor::zeros([], (Kind::Float, device)),
         };
         let prior = (&p[0] - &self.w0).square().mean(Kind::Float) * cfg.prior_shape

@@ -328,10 +328,24 @@ impl Lpips {
     /// Differentiable with respect to both images.
     pub fn distance(&self, x: &Tensor, y: &Tensor) -> Result<Tensor> {
         self.check(x, y)?;
+        self.to_target(x, &self.target(y)?)
+    }
+
+    /// The unit-length taps of `y: (B, 3, H, W)`, which [`Self::to_target`] compares with:
+    /// a fixed image needs them once. Differentiable with respect to `y`.
+    pub fn target(&self, y: &Tensor) -> Result<Vec<Tensor>> {
+        self.check(y, y)?;
+        Ok(self.features(y).iter().map(unit_normalize).collect())
+    }
+
+    /// `(B,)` distances between `x: (B, 3, H, W)` and the image whose [`Self::target`]
+    /// `target` is (one image broadcasts to every row of `x`).
+    pub fn to_target(&self, x: &Tensor, target: &[Tensor]) -> Result<Tensor> {
+        self.check(x, x)?;
         let fx = self.features(x);
-        let fy = self.features(y);
-        let per_tap = fx.iter().zip(&fy).zip(&self.heads).map(|((a, b), head)| {
-            let d = (unit_normalize(a) - unit_normalize(b)).square();
+        super::perceptual::check_target(&format!("LPIPS-{}", self.net.name()), &fx, target)?;
+        let per_tap = fx.iter().zip(target).zip(&self.heads).map(|((a, b), head)| {
+            let d = (unit_normalize(a) - b).square();
             head.forward(&d).mean_dim([2i64, 3].as_slice(), true, None::<Kind>) // (B, 1, 1, 1)
         });
         // Summed tap by tap in order, as the package does.
