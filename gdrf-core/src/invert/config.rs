@@ -48,12 +48,12 @@ pub struct InvertConfig {
     /// can grow by its dilation per rebuild.
     pub grid: i64,
     /// Sample only the grid's occupied cells along each ray, empty stretches between them
-    /// counting as empty space ([`GridConfig::cells_only`]).
+    /// counting as empty space ([`crate::render::GridConfig::cells_only`]).
     pub grid_cells: bool,
     /// Steps between rebuilds of the grid.
     pub grid_refresh: usize,
     /// The grid's density threshold: cells where softplus(σ) stays below it count as
-    /// empty (see [`GridConfig::threshold`]). Higher skips more and loses faint density.
+    /// empty (see [`crate::render::GridConfig::threshold`]). Higher skips more and loses faint density.
     pub grid_threshold: f64,
 }
 
