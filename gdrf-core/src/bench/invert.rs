@@ -261,7 +261,8 @@ pub fn run(a: &Options) -> Result<Report> {
     // The defaults, and each speed option turned off or on against them.
     let defaults = InvertConfig { resolution: res, samples: a.samples, lr: a.lr, steps: a.steps, ..Default::default() };
     let d = defaults.clone();
-    methods.push((format!("{tag}, defaults"), with_init, d.clone()));
+    let defaults_name = format!("{tag}, defaults");
+    methods.push((defaults_name.clone(), with_init, d.clone()));
     if with_init {
         methods.push(("mean code, defaults".to_string(), false, d.clone()));
     }
@@ -294,7 +295,7 @@ pub fn run(a: &Options) -> Result<Report> {
     ));
     methods.push((format!("{tag}, defaults, {half} samples"), with_init, InvertConfig { samples: half, ..d }));
     // The reference and the defaults (the baseline of every speed option) always run.
-    let always = [methods[0].0.clone(), format!("{tag}, defaults")];
+    let always = [methods[0].0.clone(), defaults_name];
     methods.retain(|(name, ..)| {
         always.contains(name) || a.only.is_empty() || a.only.iter().any(|o| name.contains(o.as_str()))
     });

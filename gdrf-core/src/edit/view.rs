@@ -210,19 +210,24 @@ pub struct GridFlags {
 
 impl GridFlags {
     /// The grid to build for a shape rendered in `samples` samples in all, or none;
-    /// inconsistent flags are errors that name them.
+    /// inconsistent flags are errors that name them ([`Self::check`]).
     pub fn resolve(&self, samples: f64) -> Result<Option<GridConfig>> {
+        self.check()?;
+        Ok(self.grid.resolve(samples, self.grid_threshold, self.grid_cells))
+    }
+
+    /// Refuses inconsistent flags, naming them: `--grid-cells` without a grid, a threshold
+    /// out of range (whether or not `auto` builds a grid this time).
+    pub fn check(&self) -> Result<()> {
         if self.grid_cells && self.grid == GridChoice::Off {
             return Err(Error::Invalid(
                 "--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 64)".into(),
             ));
         }
-        // Checked whether or not `auto` builds a grid this time, naming the flag.
         GridConfig { threshold: self.grid_threshold, ..GridConfig::default() }.validate().map_err(|e| match e {
             Error::Invalid(why) => Error::Invalid(format!("--grid-threshold {}: {why}", self.grid_threshold)),
             other => other,
-        })?;
-        Ok(self.grid.resolve(samples, self.grid_threshold, self.grid_cells))
+        })
     }
 }
 

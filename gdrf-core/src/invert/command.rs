@@ -10,6 +10,7 @@ use super::{
 use crate::checkpoint::load_generator;
 use crate::config::CameraPreset;
 use crate::edit::generator_id;
+use crate::edit::view::GridFlags;
 use crate::error::Context;
 use crate::eval::fidelity::psnr_all;
 use crate::io::{save_gif, save_png, to_rgb8};
@@ -230,11 +231,8 @@ pub fn run(a: &Options) -> Result<()> {
         grid_threshold: a.grid_threshold,
         ..Default::default()
     };
-    if a.grid_cells && a.grid == GridChoice::Off {
-        return Err(Error::Invalid(
-            "--grid-cells samples inside an occupancy grid: give its size with --grid (e.g. --grid 32)".into(),
-        ));
-    }
+    // gdrf-edit's grid flags, checked by the same rules.
+    GridFlags { grid: a.grid, grid_threshold: a.grid_threshold, grid_cells: a.grid_cells }.check()?;
     let cfg = cfg.with_grid(a.grid, a.grid_cells);
     cfg.validate()?;
     let view_res = a.render_resolution.unwrap_or(resolution);
