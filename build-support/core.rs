@@ -1,7 +1,8 @@
-//! gdrf-core's build script: the shared libtorch linking (link_libtorch.rs), and the bridge
-//! to libtorch's c10d (src/dist/c10d.cpp), compiled against the wheel's headers and gloo's,
-//! which the wheel lacks and third_party/gloo holds (see its README); with a CUDA libtorch
-//! also against the NCCL and CUDA headers of the nvidia wheels, for an NCCL group.
+//! gdrf-core's build script: the shared libtorch linking (link_libtorch.rs), and the C++
+//! bridges compiled against the wheel's headers: the SIREN layers' sine (src/nn/sine.cpp),
+//! and libtorch's c10d (src/dist/c10d.cpp), also against gloo's headers, which the wheel
+//! lacks and third_party/gloo holds (see its README); with a CUDA libtorch also against the
+//! NCCL and CUDA headers of the nvidia wheels, for an NCCL group.
 #[path = "link_libtorch.rs"]
 #[allow(dead_code)]
 mod shared;
@@ -15,7 +16,9 @@ fn main() {
 }
 
 fn bridge(lib: &Path) {
-    println!("cargo:rerun-if-changed=src/dist/c10d.cpp");
+    for f in ["src/dist/c10d.cpp", "src/nn/sine.cpp", "src/bridge_error.hpp"] {
+        println!("cargo:rerun-if-changed={f}");
+    }
     println!("cargo:rerun-if-changed=third_party/gloo");
     let include = lib.parent().expect("torch/lib has a parent").join("include");
     let mut build = cc::Build::new();
@@ -30,14 +33,15 @@ fn bridge(lib: &Path) {
         .include(include.join("torch/csrc/api/include"))
         .include("third_party/gloo")
         .warnings(false)
-        .file("src/dist/c10d.cpp");
+        .file("src/dist/c10d.cpp")
+        .file("src/nn/sine.cpp");
     if let Some(dirs) = nccl_includes(lib) {
         build.define("USE_C10D_NCCL", None).define("USE_CUDA", None).define("GDRF_NCCL", None);
         for d in dirs {
             build.include(d);
         }
     }
-    build.compile("gdrf_c10d");
+    build.compile("gdrf_bridge");
 }
 
 /// The header folders of the NCCL group, where the libtorch is a CUDA build: the wheels of

@@ -143,16 +143,23 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
     let grad_real = Tensor::run_backward(&[&dl.total], &[&real], true, false).remove(0);
     rep.check("∂D total/∂real images (R1 path)", &grad_real, &t["expected.d_grad_real"]);
     dl.total.backward();
-    // Judged against the same gradients in float64 (from the same inputs and weights):
-    // PyTorch's own float32 values of these are up to 1e-3 off them on some CPUs.
+    // Judged against the same gradients in float64 (from the same inputs and weights). In
+    // float32 they move by up to 1e-3 wherever a rounding, in the fakes or in D, flips a
+    // leaky ReLU's side: PyTorch's own float32 values are that far off float64 on some
+    // inputs and CPUs. So ours may be as far off as PyTorch's own (with a quarter for
+    // rounding: ours and PyTorch's float32 gradients can take the same side and still
+    // differ in their last digits), and no further.
     let (n, e) = worst_grad(&dvs, &t, "d_grad64.disc.");
-    rep.rows.push((format!("∂D total/∂D params vs float64 (worst {n})"), e));
     let pytorch = dvs
         .variables()
         .keys()
         .map(|k| rel_err(&t[&format!("expected.d_grad.disc.{k}")], &t[&format!("expected.d_grad64.disc.{k}")]))
         .fold(0.0, f64::max);
-    println!("(PyTorch's own {dtype} ∂D total/∂D params vs float64: {pytorch:.3e})");
+    let (_, against_pytorch) = worst_grad(&dvs, &t, "d_grad.disc.");
+    println!(
+        "(PyTorch's own {dtype} ∂D total/∂D params vs float64: {pytorch:.3e}; ours vs PyTorch's {dtype}: {against_pytorch:.3e})"
+    );
+    rep.bounded(&format!("∂D total/∂D params vs float64 (worst {n})"), e, tol.max(1.25 * pytorch));
     rep.finish();
 }
 

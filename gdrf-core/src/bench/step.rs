@@ -10,6 +10,7 @@ use crate::data::SplitChoice;
 use crate::disc::DiscConfig;
 use crate::dist::{Launch, ProcessGroup};
 use crate::loss::LossConfig;
+use crate::nn::sine;
 use crate::paths::TempDir;
 use crate::train::config::{EmaConfig, OptimConfig, Precision};
 use crate::train::{StepReport, TrainConfig, Trainer};
@@ -160,7 +161,15 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     let n = a.nproc;
     let mut runs = Vec::new();
     if n == 1 {
-        runs.push(measure(cfg, &tmp.0.join("run"), warmup, steps, cores, None)?);
+        runs.push(measure(cfg.clone(), &tmp.0.join("run"), warmup, steps, cores, None)?);
+        if a.device == "cpu" && !bf16 && sine::vectorised() {
+            // The same steps with libtorch's float32 sine (MKL), which SLEEF's replaced.
+            eprintln!("running gdrf again with libtorch's sine ({warmup} warm-up + {steps} timed steps) …");
+            let dir = tmp.0.join("run-libtorch-sine");
+            let mut r = sine::with_libtorch_sine(|| measure(cfg, &dir, warmup, steps, cores, None))?;
+            r.implementation = "gdrf with libtorch's sine".into();
+            runs.push(r);
+        }
         if !a.no_reference {
             runs.push(reference_run("bench_step.py", &ref_args)?);
         }
@@ -188,19 +197,22 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     }
     let per_second = |r: &Run| r.images_per_second.unwrap_or(f64::NAN);
     println!("{title}");
-    let w = runs.iter().map(|r| r.implementation.chars().count()).max().unwrap_or(0).max(20);
+    let w = runs.iter().map(|r| r.implementation.chars().count()).max().unwrap_or(0).max(20) + 7;
     println!("{:<w$}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
     for r in &runs {
         println!("{:<w$}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
     }
-    if let [x, y] = &runs[..] {
-        println!(
-            "{:<w$}{:>15.2}×{:>11.2}×{:>11.2}×",
-            "reference/gdrf",
-            y.median("step") / x.median("step"),
-            per_second(y) / per_second(x),
-            y.peak_rss_mb / x.peak_rss_mb
-        );
+    if n == 1 {
+        // Every other run against gdrf's (peak memory is the process's so far).
+        for y in &runs[1..] {
+            println!(
+                "{:<w$}{:>15.2}×{:>11.2}×{:>11.2}×",
+                format!("{} / gdrf", y.implementation),
+                y.median("step") / runs[0].median("step"),
+                per_second(y) / per_second(&runs[0]),
+                y.peak_rss_mb / runs[0].peak_rss_mb
+            );
+        }
     }
     let mut title = title;
     if n > 1 {

@@ -17,11 +17,14 @@
 #endif
 
 #include <chrono>
-#include <cstring>
 #include <string>
 #include <vector>
 
+#include "../bridge_error.hpp"
+
 namespace {
+
+using gdrf::guarded;
 
 struct Group {
   c10::intrusive_ptr<c10d::Store> store;
@@ -37,29 +40,6 @@ c10d::Backend& backend_for(void* group, const at::Tensor& t) {
   auto* g = static_cast<Group*>(group);
   if (t.is_cuda() && g->cuda) return *g->cuda;
   return *g->pg;
-}
-
-void say(char* err, size_t len, const std::string& msg) {
-  if (err == nullptr || len == 0) return;
-  size_t n = std::min(len - 1, msg.size());
-  std::memcpy(err, msg.data(), n);
-  err[n] = '\0';
-}
-
-template <typename F>
-int guarded(char* err, size_t len, F f) {
-  try {
-    f();
-    return 0;
-  } catch (const c10::Error& e) {
-    // Without the C++ stack trace that what() appends.
-    say(err, len, e.what_without_backtrace());
-  } catch (const std::exception& e) {
-    say(err, len, e.what());
-  } catch (...) {
-    say(err, len, "unknown C++ exception");
-  }
-  return 1;
 }
 
 }  // namespace

@@ -62,6 +62,6 @@ impl FilmLayer {
         let w = gamma.transpose(1, 2) * &self.linear.weight; // (B, out, in)
         let b = gamma * &self.linear.bias + beta; // (B, 1, out)
                                                   // Folded in float32, then cast to the points' dtype (reduced-precision evaluation).
-        super::like(&b, x).baddbmm(x, &super::like(&w, x).transpose(1, 2), 1, 1).sin()
+        super::sine::sin(&super::like(&b, x).baddbmm(x, &super::like(&w, x).transpose(1, 2), 1, 1))
     }
 }

@@ -1,7 +1,8 @@
 //! Building blocks: a Linear layer with the release's initialisation schemes, the plain
-//! SIREN layer, the FiLM-SIREN layer and its modulation, and the mapping network.
+//! SIREN layer, the FiLM-SIREN layer and its modulation, the mapping network, and their sine.
 pub mod film;
 pub mod mapping;
+pub mod sine;
 pub mod siren;
 
 use tch::{nn, Tensor};

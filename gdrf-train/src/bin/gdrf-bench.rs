@@ -21,7 +21,9 @@ enum Bench {
     /// stage, gdrf's `Trainer::step` against the PyTorch reference at the same sizes, on
     /// the CPU or a GPU (`--device`), in float32 or bfloat16. Real images come from a small procedural dataset generated in a temporary
     /// folder (the reference uses random images). Timed steps are steps where R1 is due.
-    /// `--nproc N`: data-parallel scaling, N ranks of one thread against one process of N.
+    /// On a CPU in float32, gdrf also runs with libtorch's sine (MKL) in place of its own
+    /// (SLEEF). `--nproc N`: data-parallel scaling, N ranks of one thread against one
+    /// process of N.
     Step(step::Options),
     /// The gradient all-reduce of data-parallel training (a config's generator and
     /// discriminator parameters, Gloo over loopback, one thread a rank) against the bucket
