@@ -31,7 +31,7 @@ using torch::autograd::variable_list;
 #if defined(__x86_64__)
 // Eight sines or cosines. SLEEF's 3.5-ULP functions hold their bound for |x| < 125 000 and
 // cost about 1 ns an element on any argument; the 1.0-ULP ones take over 5 ns from |x| > 125
-// on (measured on the AMD EPYC), which the SIREN layers' pre-activations often exceed. A
+// on (measured on the AMD EPYC), and used throughout they saved little in training. A
 // vector with a lane beyond 125 000 (or not finite) goes through the 1.0-ULP ones, which hold
 // for every argument. Only the functions marked with the target attribute are compiled for
 // AVX2 and FMA (not the file), so no inline function of libtorch's headers is emitted with
