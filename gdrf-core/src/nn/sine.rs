@@ -1,6 +1,7 @@
 //! The sine of the SIREN layers. libtorch computes float32 `sin` and `cos` on the CPU with
 //! MKL's VML; SLEEF's AVX2 functions (which libtorch itself uses for its bfloat16 and half
-//! sines, and exports) take less than half its time. The SIREN layers' sines and their
+//! sines, and exports) take 0.8–1.4 ns an element where MKL takes 2.3–4.0 ns (one core of
+//! the project's AMD EPYC; README, "Benchmarks"). The SIREN layers' sines and their
 //! derivatives were a fifth of a training step on the project's 2-core AMD EPYC, so float32
 //! CPU tensors go through SLEEF: the bridge in `sine.cpp`, an autograd function whose
 //! derivatives are each other's, so gradients of every order stay exact. Every other dtype
@@ -8,12 +9,14 @@
 //!
 //! Accuracy: SLEEF's 3.5-ULP functions for |x| < 125 000 (within 2.1e-7 of the true value),
 //! its 1.0-ULP ones beyond; libtorch's MKL path is within about 1 ULP.
+use std::cell::Cell;
 use std::ffi::{c_char, c_int, c_void, CStr};
-use std::sync::atomic::{AtomicBool, Ordering};
 use tch::{Device, Kind, Tensor};
 
-/// Set while [`with_libtorch_sine`] runs.
-static LIBTORCH_SINE: AtomicBool = AtomicBool::new(false);
+thread_local! {
+    /// Set on the thread running [`with_libtorch_sine`].
+    static LIBTORCH_SINE: Cell<bool> = const { Cell::new(false) };
+}
 
 extern "C" {
     fn gdrf_sin(x: *mut c_void, err: *mut c_char, err_len: usize) -> *mut c_void;
@@ -23,7 +26,7 @@ extern "C" {
 /// `sin(x)` elementwise, any shape, differentiable to any order (its derivative, cos,
 /// goes through SLEEF as well).
 pub fn sin(x: &Tensor) -> Tensor {
-    if x.device() != Device::Cpu || x.kind() != Kind::Float || LIBTORCH_SINE.load(Ordering::Relaxed) {
+    if x.device() != Device::Cpu || x.kind() != Kind::Float || LIBTORCH_SINE.get() {
         return x.sin();
     }
     let mut err = [0 as c_char; 512];
@@ -39,17 +42,16 @@ pub fn sin(x: &Tensor) -> Tensor {
     unsafe { Tensor::from_ptr(out.cast()) }
 }
 
-/// Runs `f` with every sine through libtorch's own, as before SLEEF: the step benchmark's
-/// comparison (`gdrf-bench step`). The switch is process-wide, so nothing else should
-/// compute meanwhile.
+/// Runs `f` with every sine this thread asks for through libtorch's own, as before SLEEF:
+/// the step benchmark's comparison (`gdrf-bench step`). Other threads are not affected.
 pub fn with_libtorch_sine<T>(f: impl FnOnce() -> T) -> T {
     struct Restore;
     impl Drop for Restore {
         fn drop(&mut self) {
-            LIBTORCH_SINE.store(false, Ordering::Relaxed);
+            LIBTORCH_SINE.set(false);
         }
     }
-    LIBTORCH_SINE.store(true, Ordering::Relaxed);
+    LIBTORCH_SINE.set(true);
     let _restore = Restore;
     f()
 }
@@ -166,8 +168,16 @@ mod tests {
     #[test]
     fn the_benchmark_switch_gives_libtorchs_sine_and_restores_the_default() {
         let x = (Tensor::rand([4096], (Kind::Float, Device::Cpu)) - 0.5) * 300.0;
-        let plain = with_libtorch_sine(|| sin(&x));
+        let (plain, elsewhere) = with_libtorch_sine(|| {
+            // Another thread meanwhile keeps the default.
+            let y = x.copy();
+            let other = std::thread::spawn(move || sin(&y)).join().unwrap();
+            (sin(&x), other)
+        });
         assert!(plain.equal(&x.sin()), "libtorch's sine, bit for bit");
+        if vectorised() {
+            assert!(!elsewhere.equal(&x.sin()), "the switch reached another thread");
+        }
         assert!(sin(&x).allclose(&x.sin(), 0.0, 3.5 * 2f64.powi(-24), false));
         if vectorised() {
             // SLEEF again after the switch: not libtorch's bits everywhere.
