@@ -4,7 +4,7 @@
 mod common;
 
 use common::{repo_root, TempDir};
-use gdrf_core::checkpoint::load_generator;
+use gdrf_core::checkpoint::{load_generator, save_generator};
 use std::process::Command;
 use tch::{Device, Kind};
 
@@ -17,21 +17,33 @@ fn interpolate(args: &[&str]) -> std::process::Output {
         .unwrap()
 }
 
-/// A generator blended with itself is itself up to float32 rounding (0.6·w + 0.4·w), and the
-/// header keeps what both sources record: their steps under `from.`/`to.` (chairs-tiny-ms
-/// stopped at step 5 211), and the training resolution and samples per ray they share (it last
-/// trained at 32², 12 + 12).
+/// chairs-tiny-ms (FROM) blended at t = 0.25 with a copy of it whose every parameter is
+/// doubled (TO) gives 0.75·w + 0.25·2w = 1.25·w (with FROM and TO swapped it would be 1.75·w),
+/// and the header keeps what both sources record: their steps under `from.`/`to.`
+/// (chairs-tiny-ms stopped at step 5 211), and the training resolution and samples per ray
+/// they share (it last trained at 32², 12 + 12).
 #[test]
-fn interpolate_writes_the_blend_and_both_sources() {
+fn interpolate_writes_the_blend_its_flags_ask_for() {
     let dir = TempDir::new("interpolate").unwrap();
-    let out = dir.path("blend.safetensors");
     let ms = "models/chairs-tiny-ms/generator.safetensors";
-    let run = interpolate(&["--from", ms, "--to", ms, "--t", "0.4", "--out", out.to_str().unwrap()]);
+    let source = load_generator(&repo_root().join(ms), Device::Cpu, Kind::Float).unwrap();
+    let doubled = dir.path("doubled.safetensors");
+    {
+        let copy = load_generator(&repo_root().join(ms), Device::Cpu, Kind::Float).unwrap();
+        tch::no_grad(|| {
+            for (_, mut v) in copy.vs.variables() {
+                v.f_mul_scalar_(2.0).unwrap();
+            }
+        });
+        save_generator(&doubled, &copy.vs, &copy.header).unwrap();
+    }
+    let out = dir.path("blend.safetensors");
+    let run =
+        interpolate(&["--from", ms, "--to", doubled.to_str().unwrap(), "--t", "0.25", "--out", out.to_str().unwrap()]);
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     let made = load_generator(&out, Device::Cpu, Kind::Float).unwrap();
-    let source = load_generator(&repo_root().join(ms), Device::Cpu, Kind::Float).unwrap();
-    for (key, want) in [("resolution", "32"), ("samples_per_ray", "24")] {
-        for prefix in ["", "from.", "to."] {
+    for (key, want) in [("resolution", "32"), ("samples_per_ray", "24"), ("step", "5211")] {
+        for prefix in ["from.", "to."] {
             assert_eq!(
                 made.header.info.get(&format!("{prefix}{key}")).map(String::as_str),
                 Some(want),
@@ -39,15 +51,16 @@ fn interpolate_writes_the_blend_and_both_sources() {
             );
         }
     }
-    for key in ["from.step", "to.step"] {
-        assert_eq!(made.header.info.get(key).map(String::as_str), Some("5211"), "{key}");
+    for (key, want) in [("resolution", "32"), ("samples_per_ray", "24")] {
+        assert_eq!(made.header.info.get(key).map(String::as_str), Some(want), "{key}");
     }
     let want = source.vs.variables();
     let got = made.vs.variables();
     assert_eq!(got.len(), want.len());
     assert_eq!(got.len(), 48);
     for (name, t) in got {
-        assert!(t.allclose(&want[&name], 1e-6, 1e-7, false), "{name} is not chairs-tiny-ms's");
+        let expected = &want[&name] * 1.25;
+        assert!(t.allclose(&expected, 1e-6, 1e-7, false), "{name} is not 1.25 × chairs-tiny-ms's");
     }
 }
 
