@@ -32,7 +32,7 @@ fn interpolate_writes_the_blend_its_flags_ask_for() {
         let copy = load_generator(&repo_root().join(ms), Device::Cpu, Kind::Float).unwrap();
         tch::no_grad(|| {
             for (_, mut v) in copy.vs.variables() {
-                v.f_mul_scalar_(2.0).unwrap();
+                let _ = v.f_mul_scalar_(2.0).unwrap();
             }
         });
         save_generator(&doubled, &copy.vs, &copy.header).unwrap();
