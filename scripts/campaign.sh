@@ -8,7 +8,8 @@
 #   scripts/campaign.sh stop     [RUN_DIR]   stop it with a checkpoint (SIGINT), and wait
 #   scripts/campaign.sh status   [RUN_DIR]   step, last log line, the curve's last evaluation
 #   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign/run,
-#                                            overwriting the previous copy (then commit it)
+#                                            overwriting the previous copy (gdrf-train snapshot;
+#                                            stop it first, then commit the copy)
 #   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
 #                                            into models/chairs-campaign (gdrf-train ship)
 #
@@ -72,28 +73,17 @@ print("last evaluation: step", l["step"], "images", l["images_seen"], "positions
     fi
     ;;
   snapshot)
-    [ -d "$run/checkpoints" ] || die "$run holds no checkpoints"
-    newest="$(ls "$run/checkpoints" | tail -n 1)"
-    [ -n "$newest" ] || die "$run holds no checkpoints"
-    stage="$shipped.tmp.$$"
-    rm -rf "$stage"
-    mkdir -p "$stage/checkpoints"
-    cp "$run/checkpoints/$newest" "$stage/checkpoints/"
-    for f in config.toml metrics.jsonl curve.jsonl curve.png filmstrip.png; do
-      if [ -f "$run/$f" ]; then cp "$run/$f" "$stage/"; fi
-    done
-    rm -rf "$shipped.old"
-    if [ -d "$shipped" ]; then mv "$shipped" "$shipped.old"; fi
-    mv "$stage" "$shipped"
-    rm -rf "$shipped.old"
-    echo "campaign: $shipped now holds $newest; commit it (git add -A $shipped)"
+    [ -z "$(running)" ] || die "still running in $run (pid $(running)); stop it first (scripts/campaign.sh stop)"
+    cargo build --release --quiet -p gdrf-train
+    target/release/gdrf-train snapshot "$run" --out "$shipped"
+    echo "campaign: commit it (git add -A $shipped)"
     ;;
   ship)
     cargo build --release --quiet -p gdrf-train
     target/release/gdrf-train ship "$run" --out "$model"
     ;;
   *)
-    sed -n '2,16p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,18p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     [ -z "$cmd" ] || exit 2
     ;;
 esac

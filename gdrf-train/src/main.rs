@@ -59,6 +59,24 @@ enum Command {
     /// scores; where its evaluation folder lost them, from the run's checkpoint of that step
     /// and the curve.
     Ship(ShipArgs),
+    /// Copy a run's full training state into one folder that `--resume` continues from: its
+    /// newest checkpoint (both networks, the EMA, both optimisers, the counters), config.toml,
+    /// metrics.jsonl, its learning curve (curve.jsonl, curve.png, filmstrip.png) and each
+    /// evaluation's filmstrip row (evals/step-N/frame.png), so that the resumed run draws the
+    /// whole filmstrip again. DIR is replaced whole (made beside it, then renamed into place);
+    /// the run must not be training (its lock is taken). The campaign commits this copy
+    /// (`scripts/campaign.sh snapshot`).
+    Snapshot(SnapshotArgs),
+}
+
+#[derive(Args)]
+struct SnapshotArgs {
+    /// A run directory written by `gdrf-train --config`.
+    run_dir: PathBuf,
+    /// The folder to write: missing, empty, or an earlier snapshot or run directory (one
+    /// that holds config.toml or checkpoints/), which is replaced.
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -239,6 +257,7 @@ fn main() {
         Some(Command::Eval(a)) => eval_cmd::eval(*a),
         Some(Command::Interpolate(a)) => interpolate_cmd(a),
         Some(Command::Ship(a)) => ship_cmd(a),
+        Some(Command::Snapshot(a)) => snapshot_cmd(a),
         None if cli.train.any() => train_cmd::train(cli.train),
         None => usage("nothing to do: pass --config FILE, --resume RUN_DIR or a subcommand; see `gdrf-train --help`"),
     };
@@ -272,6 +291,19 @@ fn ship_cmd(a: ShipArgs) -> Result<()> {
         p.score,
         a.out.join("generator.safetensors").display(),
         shipped.from.display()
+    );
+    Ok(())
+}
+
+fn snapshot_cmd(a: SnapshotArgs) -> Result<()> {
+    let s = gdrf_core::train::snapshot::snapshot(&a.run_dir, &a.out)?;
+    println!(
+        "{}: the checkpoint of step {}, config, metrics, curve and {} evaluation frames ({} files) from {}",
+        a.out.display(),
+        s.step,
+        s.frames,
+        s.files,
+        a.run_dir.display()
     );
     Ok(())
 }

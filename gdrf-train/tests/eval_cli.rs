@@ -376,6 +376,85 @@ fn probe_learns_and_eval_is_calibrated() {
         .collect();
     assert_eq!(again.len(), 2);
     assert_same_numbers(&again[1]["scores"]["scores"], &lines[1]["scores"]["scores"], "resumed curve");
+
+    // `gdrf-train snapshot`: the newest checkpoint, the config, metrics and curve, and every
+    // evaluation's filmstrip row, byte for byte, and nothing else.
+    let snap = tmp.path("snapshot");
+    let (r, s) = (run.to_str().unwrap(), snap.to_str().unwrap());
+    let snapshot = |out: &str| {
+        Command::new(env!("CARGO_BIN_EXE_gdrf-train")).args(["snapshot", r, "--out", out]).output().unwrap()
+    };
+    {
+        // A run being trained (its lock held) is refused, naming it, and nothing is written.
+        let _training = gdrf_core::train::run::RunLock::acquire(&run).unwrap();
+        let refused = snapshot(s);
+        let err = String::from_utf8_lossy(&refused.stderr);
+        assert!(!refused.status.success() && err.contains(r) && err.contains("in use"), "{err}");
+        assert!(!snap.exists());
+    }
+    let said = gdrf_train(&["snapshot", r, "--out", s]);
+    assert!(said.contains("step 4") && said.contains("2 evaluation frames (8 files)"), "{said}");
+    fn files_under(dir: &Path, base: &Path, out: &mut Vec<String>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                files_under(&p, base, out);
+            } else {
+                out.push(p.strip_prefix(base).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    let listing = |dir: &Path| {
+        let mut v = Vec::new();
+        files_under(dir, dir, &mut v);
+        v.sort();
+        v
+    };
+    let copied = listing(&snap);
+    assert_eq!(
+        copied,
+        [
+            "checkpoints/step-00000004.safetensors",
+            "config.toml",
+            "curve.jsonl",
+            "curve.png",
+            "evals/step-00000002/frame.png",
+            "evals/step-00000004/frame.png",
+            "filmstrip.png",
+            "metrics.jsonl"
+        ]
+    );
+    for f in &copied {
+        assert_eq!(std::fs::read(snap.join(f)).unwrap(), std::fs::read(run.join(f)).unwrap(), "{f}");
+    }
+    // The copy draws the same filmstrip again from its frames, as a run resumed from it does
+    // at its next evaluation.
+    std::fs::remove_file(snap.join("filmstrip.png")).unwrap();
+    gdrf_train(&["plot", s]);
+    let redrawn = std::fs::read(snap.join("filmstrip.png")).unwrap();
+    assert_eq!(redrawn, std::fs::read(run.join("filmstrip.png")).unwrap(), "filmstrip re-drawn from the copy");
+    // A second snapshot replaces the first whole and leaves no temporary folder beside it.
+    std::fs::write(snap.join("stray.txt"), "from before").unwrap();
+    gdrf_train(&["snapshot", r, "--out", s]);
+    assert_eq!(listing(&snap), copied);
+    let beside: Vec<_> = std::fs::read_dir(&tmp.0)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".snapshot"))
+        .collect();
+    assert!(beside.is_empty(), "{beside:?}");
+    // A folder that is neither empty nor a run (here the dataset), the run itself and a
+    // folder holding it are refused by name and left as they were.
+    for (out, expect) in [
+        (d, "refusing to replace it"),
+        (r, "must not hold one another"),
+        (tmp.0.to_str().unwrap(), "must not hold one another"),
+    ] {
+        let refused = snapshot(out);
+        let err = String::from_utf8_lossy(&refused.stderr);
+        assert!(!refused.status.success() && err.contains(out) && err.contains(expect), "{out}: {err}");
+    }
+    assert!(data.join("metadata.json").is_file() && run.join("checkpoints/step-00000004.safetensors").is_file());
 }
 
 #[test]

@@ -25,7 +25,7 @@ pub const EVALS: &str = "evals";
 /// `gdrf-train eval --seeds` names them).
 const SEEDS: &str = "seeds.json";
 /// Each evaluation's filmstrip row, in its `evals/step-NNNNNNNN/` folder.
-const FRAME: &str = "frame.png";
+pub const FRAME: &str = "frame.png";
 
 /// One line of curve.jsonl.
 #[derive(Debug, Serialize)]

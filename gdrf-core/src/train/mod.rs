@@ -14,6 +14,7 @@ mod parallel;
 pub mod pass;
 pub mod run;
 pub mod samples;
+pub mod snapshot;
 mod state;
 mod step;
 
