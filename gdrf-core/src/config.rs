@@ -72,13 +72,9 @@ impl Background {
         *self == Background::Learned
     }
 
-    /// The key's value as written in a config.
-    pub fn name(&self) -> &'static str {
-        match self {
-            Background::Learned => "learned",
-            Background::Random => "random",
-            Background::Corners => "corners",
-        }
+    /// The key's value as written in a config (its serde name).
+    pub fn name(&self) -> String {
+        serde_json::to_value(self).ok().and_then(|v| v.as_str().map(str::to_owned)).unwrap_or_default()
     }
 }
 
@@ -469,5 +465,19 @@ mod tests {
         GeneratorConfig::default().validate().unwrap();
         RenderConfig::default().validate().unwrap();
         assert!(CameraConfig { fov_deg: 180.0, ..CameraConfig::chair() }.validate().is_err());
+    }
+
+    #[test]
+    fn background_names_are_the_config_values() {
+        #[derive(Deserialize)]
+        struct Key {
+            background: Background,
+        }
+        for (b, name) in
+            [(Background::Learned, "learned"), (Background::Random, "random"), (Background::Corners, "corners")]
+        {
+            assert_eq!(b.name(), name);
+            assert_eq!(toml::from_str::<Key>(&format!("background = \"{name}\"")).unwrap().background, b);
+        }
     }
 }
