@@ -10,6 +10,8 @@
 #   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign/run,
 #                                            overwriting the previous copy (gdrf-train snapshot;
 #                                            stop it first, then commit the copy)
+#   scripts/campaign.sh verify   [RUN_DIR]   resume a scratch copy of the committed state to its
+#                                            next logged step and compare that line with the run's
 #   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
 #                                            into models/chairs-campaign (gdrf-train ship)
 #
@@ -78,12 +80,45 @@ print("last evaluation: step", l["step"], "images", l["images_seen"], "positions
     target/release/gdrf-train snapshot "$run" --out "$shipped"
     echo "campaign: commit it (git add -A $shipped)"
     ;;
+  verify)
+    # Whether the committed copy continues the run: a scratch copy of it, resumed with the
+    # campaign's binary and the CPU's config to its next logged step, must write the line the
+    # run wrote at that step, in every key but the two timings.
+    [ -d "$shipped/checkpoints" ] || die "$shipped holds no state"
+    [ -x "$bin" ] || die "no $bin; scripts/campaign.sh resume builds it"
+    newest="$(ls "$shipped/checkpoints" | tail -n 1)"
+    from="$(echo "$newest" | sed 's/^step-0*//; s/\.safetensors$//')"
+    every="$(sed -n 's/^log_interval *= *//p' "$cpu_config")"
+    to=$(( (from + every - 1) / every * every ))
+    grep -q "\"step\":$to," "$run/metrics.jsonl" || die "$run has not logged step $to yet"
+    scratch="$(mktemp -d)"
+    trap 'rm -rf "$scratch"' EXIT
+    cp -r "$shipped" "$scratch/run"
+    nice -n 19 "$bin" --resume "$scratch/run" --config "$cpu_config" --steps $(( to - from + 1 )) --quiet >/dev/null
+    "${GDRF_PYTHON:-python3}" - "$run/metrics.jsonl" "$scratch/run/metrics.jsonl" "$to" <<'PY'
+import json, sys
+def logged(path, step):
+    lines = [json.loads(l) for l in open(path)]
+    found = [l for l in lines if l.get("step") == step and "event" not in l]
+    if not found:
+        sys.exit(f"campaign: error: {path} has no line for step {step}")
+    line = found[-1]
+    for timing in ("step_seconds", "images_per_second"):
+        line.pop(timing, None)
+    return line
+run, copy = logged(sys.argv[1], int(sys.argv[3])), logged(sys.argv[2], int(sys.argv[3]))
+differ = sorted(k for k in run.keys() | copy.keys() if run.get(k) != copy.get(k))
+if differ:
+    sys.exit(f"campaign: error: step {sys.argv[3]}: the copy's line differs from the run's in {differ}")
+print(f"campaign: resumed from the committed copy, step {sys.argv[3]}'s line equals the run's ({len(run)} keys, timings aside)")
+PY
+    ;;
   ship)
     cargo build --release --quiet -p gdrf-train
     target/release/gdrf-train ship "$run" --out "$model"
     ;;
   *)
-    sed -n '2,18p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,20p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     [ -z "$cmd" ] || exit 2
     ;;
 esac
