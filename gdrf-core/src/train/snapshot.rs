@@ -47,6 +47,25 @@ fn replaceable(dir: &Path) -> Result<bool> {
     Ok(empty || dir.join(run::CONFIG).is_file() || dir.join(run::CHECKPOINTS).is_dir())
 }
 
+/// `path` (absolute) with links resolved as far as it exists, the rest appended: where a
+/// folder that is still to be made would stand.
+fn resolved(path: &Path) -> PathBuf {
+    let mut rest = Vec::new();
+    let mut at = path;
+    loop {
+        if let Ok(real) = at.canonicalize() {
+            return rest.iter().rev().fold(real, |p, name| p.join(name));
+        }
+        match (at.parent(), at.file_name()) {
+            (Some(parent), Some(name)) => {
+                rest.push(name.to_owned());
+                at = parent;
+            }
+            _ => return path.to_path_buf(),
+        }
+    }
+}
+
 /// Copies `run_dir`'s newest checkpoint, config, metrics, learning curve and evaluation
 /// frames into `out`, replacing `out` whole. The copy is made in a temporary folder beside
 /// `out` and renamed into place, so `out` holds either the previous snapshot or the new one,
@@ -59,9 +78,8 @@ pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
             reason: format!("no {} here; is this a gdrf-train run directory?", run::CONFIG),
         });
     }
-    let absolute = |p: &Path| std::path::absolute(p).map_err(io(p));
-    let (from, to) = (absolute(run_dir)?, absolute(out)?);
-    let (from_real, to_real) = (from.canonicalize().map_err(io(run_dir))?, to.canonicalize().unwrap_or(to.clone()));
+    let to = std::path::absolute(out).map_err(io(out))?;
+    let (from_real, to_real) = (run_dir.canonicalize().map_err(io(run_dir))?, resolved(&to));
     if from_real.starts_with(&to_real) || to_real.starts_with(&from_real) {
         return Err(Error::Invalid(format!(
             "--out {} and the run {} must not hold one another",
@@ -131,4 +149,23 @@ pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
         std::fs::remove_dir_all(&old).map_err(io(&old))?;
     }
     Ok(Snapshot { step, files: files.len(), frames })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_out_reached_through_a_link_into_the_run_is_refused() {
+        let tmp = crate::paths::TempDir::new("snapshot-link").unwrap();
+        let run_dir = tmp.path("run");
+        std::fs::create_dir_all(&run_dir).unwrap();
+        std::fs::write(run_dir.join(run::CONFIG), "").unwrap();
+        std::os::unix::fs::symlink(&run_dir, tmp.path("link")).unwrap();
+        let inside = tmp.path("link").join("copies").join("snap");
+        assert_eq!(resolved(&inside), run_dir.canonicalize().unwrap().join("copies").join("snap"));
+        let e = snapshot(&run_dir, &inside).unwrap_err().to_string();
+        assert!(e.contains("must not hold one another"), "{e}");
+        assert!(!run_dir.join("copies").exists() && !run_dir.join(run::LOCK).exists());
+    }
 }
