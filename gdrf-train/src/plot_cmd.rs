@@ -3,7 +3,7 @@
 use anyhow::{bail, Result};
 use clap::Args;
 use gdrf_core::plot::{draw_panels, smooth, Panel, Series};
-use gdrf_core::train::{curve, run};
+use gdrf_core::train::{curve, plateau, run};
 use std::path::PathBuf;
 
 #[derive(Args)]
@@ -74,7 +74,29 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     println!("wrote {} ({} logged steps, moving average over {})", out.display(), records.len(), a.smooth);
     // The learning curve, where the run scores itself (`[eval] interval`).
     if let (Some(c), Some(f)) = (curve::plot(&a.run_dir)?, curve::filmstrip(&a.run_dir)?) {
-        println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), curve::read(&a.run_dir)?.len());
+        let lines = curve::read(&a.run_dir)?;
+        println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), lines.len());
+        if let Some(s) = standing(&lines) {
+            println!("{s}");
+        }
     }
     Ok(())
+}
+
+/// Where the learning curve stands under the campaign's flatness rule
+/// ([`gdrf_core::train::plateau`]), in one line.
+pub fn standing(lines: &[serde_json::Value]) -> Option<String> {
+    let s = plateau::standing(lines)?;
+    let what = if s.improved.is_empty() {
+        "first evaluated".to_string()
+    } else {
+        format!("last improved ({})", s.improved.join(", "))
+    };
+    Some(format!(
+        "the curve {what} at step {}, {} steps before its last evaluation (step {}): {}",
+        s.last_improvement,
+        s.last - s.last_improvement,
+        s.last,
+        if s.flat() { format!("flat (at least {} steps)", plateau::FLAT_STEPS) } else { "not flat".to_string() }
+    ))
 }

@@ -345,6 +345,8 @@ fn probe_learns_and_eval_is_calibrated() {
     let shipped = tmp.path("shipped");
     let said = gdrf_train(&["ship", run.to_str().unwrap(), "--out", shipped.to_str().unwrap()]);
     assert!(said.starts_with(&format!("step {want} of 2 evaluations: short of the goal")), "{said}");
+    // With it, where the curve stands under the flatness rule (gdrf_core::train::plateau).
+    assert!(said.contains("before its last evaluation (step 4): not flat"), "{said}");
     let evaluated = run.join(format!("evals/step-{want:08}"));
     for f in ["generator.safetensors", "seeds.json"] {
         let made = std::fs::read(shipped.join(f)).unwrap();

@@ -12,6 +12,7 @@ pub mod curve;
 pub mod optim;
 mod parallel;
 pub mod pass;
+pub mod plateau;
 pub mod run;
 pub mod samples;
 pub mod snapshot;

@@ -1,0 +1,174 @@
+//! When a learning curve counts as flat: the campaign ends when it has stayed flat for
+//! [`FLAT_STEPS`] after the last change the evidence pointed to, and goes on while any score
+//! still improves (docs/training.md, "The campaign"). Fixed at step 110 300, before the
+//! step-115 000 evaluation.
+//!
+//! An evaluation improves a score when that score's seed mean beats its best seed mean over
+//! the evaluations of the [`FLAT_STEPS`] before it by more than the score's noise: the
+//! median, over the whole curve, of how far the seeds of one evaluation lie apart. A gain
+//! smaller than two seeds of the same generator disagree by is not evidence of learning.
+use crate::bench::median;
+use serde_json::Value;
+
+/// How long the curve must go without an improvement to count as flat, in steps.
+pub const FLAT_STEPS: i64 = 20_000;
+
+/// The values followed, per seed, each higher-is-better: the calibrated scores' positions,
+/// capped at 1 (past the real end is no better), and the swap tests' rates (structure has
+/// no random end on most seeds, so no position; colour's position is not calibrated at 32²).
+const FOLLOWED: &[(&str, &str)] = &[
+    ("frechet distance", "position"),
+    ("kernel distance", "position"),
+    ("coverage tv", "position"),
+    ("pose yaw error deg", "position"),
+    ("pose pitch error deg", "position"),
+    ("shape follows i", "model"),
+    ("appearance follows j", "model"),
+];
+
+/// `name`'s per-seed values in a curve line (positions capped at 1); `None` unless every
+/// seed has a finite one.
+fn per_seed(line: &Value, name: &str, key: &str) -> Option<Vec<f64>> {
+    let score = line["scores"]["scores"].as_array()?.iter().find(|s| s["score"] == name)?;
+    let v: Vec<f64> =
+        score[key].as_array()?.iter().map(|x| x.as_f64().filter(|x| x.is_finite())).collect::<Option<_>>()?;
+    let cap = if key == "position" { 1.0 } else { f64::INFINITY };
+    (!v.is_empty()).then(|| v.into_iter().map(|x| x.min(cap)).collect())
+}
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+/// One evaluation's verdict.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Verdict {
+    pub step: i64,
+    /// The scores it improves (empty: none), by their evaluation names.
+    pub improves: Vec<String>,
+    /// Whether an earlier evaluation lies within [`FLAT_STEPS`] before it to compare with.
+    pub compared: bool,
+}
+
+/// Each curve line's verdict, in the curve's order.
+pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
+    let noise: Vec<f64> = FOLLOWED
+        .iter()
+        .map(|(name, key)| {
+            let spreads: Vec<f64> = lines
+                .iter()
+                .filter_map(|l| per_seed(l, name, key))
+                .filter(|v| v.len() > 1)
+                .map(|v| {
+                    v.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                        - v.iter().copied().fold(f64::INFINITY, f64::min)
+                })
+                .collect();
+            if spreads.is_empty() {
+                0.0
+            } else {
+                median(&spreads)
+            }
+        })
+        .collect();
+    lines
+        .iter()
+        .filter_map(|l| Some((l["step"].as_i64()?, l)))
+        .map(|(step, line)| {
+            let before: Vec<&Value> = lines
+                .iter()
+                .filter(|e| e["step"].as_i64().is_some_and(|s| s < step && s >= step - FLAT_STEPS))
+                .collect();
+            let improves = FOLLOWED
+                .iter()
+                .zip(&noise)
+                .filter(|((name, key), noise)| {
+                    let Some(now) = per_seed(line, name, key) else { return false };
+                    let best = before
+                        .iter()
+                        .filter_map(|e| per_seed(e, name, key))
+                        .map(|v| mean(&v))
+                        .fold(f64::NEG_INFINITY, f64::max);
+                    best.is_finite() && mean(&now) > best + **noise
+                })
+                .map(|((name, _), _)| name.to_string())
+                .collect();
+            Verdict { step, improves, compared: !before.is_empty() }
+        })
+        .collect()
+}
+
+/// Where a curve stands: its last evaluation, and the last one that improved a score (or,
+/// where none did, its first evaluation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Standing {
+    pub last: i64,
+    pub last_improvement: i64,
+    pub improved: Vec<String>,
+}
+
+impl Standing {
+    /// Whether the curve has gone [`FLAT_STEPS`] without an improvement.
+    pub fn flat(&self) -> bool {
+        self.last - self.last_improvement >= FLAT_STEPS
+    }
+}
+
+/// The curve's standing (`None` for an empty curve).
+pub fn standing(lines: &[Value]) -> Option<Standing> {
+    let v = verdicts(lines);
+    let last = v.last()?.step;
+    let at = v.iter().rev().find(|v| !v.improves.is_empty()).unwrap_or(&v[0]);
+    Some(Standing { last, last_improvement: at.step, improved: at.improves.clone() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A line scored on two seeds: Fréchet positions, and the colour test's rates.
+    fn line(step: i64, frechet: [f64; 2], colour: [f64; 2]) -> Value {
+        json!({"step": step, "scores": {"scores": [
+            {"score": "frechet distance", "position": frechet},
+            {"score": "appearance follows j", "model": colour, "position": [null, null]},
+        ]}})
+    }
+
+    #[test]
+    fn a_gain_counts_only_beyond_the_seeds_spread_and_within_the_window() {
+        // Fréchet seeds lie 0.02 apart at every evaluation (the noise), colour 0.1.
+        let lines = [
+            line(5000, [0.50, 0.52], [0.60, 0.70]),
+            line(10000, [0.60, 0.62], [0.60, 0.70]), // +0.10 Fréchet: an improvement
+            line(15000, [0.61, 0.63], [0.65, 0.75]), // +0.01 and +0.05: within the noise
+            line(20000, [0.60, 0.62], [0.70, 0.80]), // colour 0.75 against the best 0.70: within 0.1
+            line(25000, [0.60, 0.62], [0.85, 0.95]), // colour 0.90 > 0.75 + 0.1: an improvement
+        ];
+        let v = verdicts(&lines);
+        let improves: Vec<Vec<String>> = v.iter().map(|v| v.improves.clone()).collect();
+        assert_eq!(
+            improves,
+            [vec![], vec!["frechet distance".to_string()], vec![], vec![], vec!["appearance follows j".to_string()]]
+        );
+        assert_eq!(v.iter().map(|v| v.compared).collect::<Vec<_>>(), [false, true, true, true, true]);
+        let s = standing(&lines).unwrap();
+        assert_eq!((s.last, s.last_improvement, s.flat()), (25000, 25000, false));
+
+        // Positions past the real end count as 1; the best is taken over the window only.
+        let capped = [line(0, [1.0, 1.0], [0.5, 0.5]), line(5000, [1.3, 1.3], [0.5, 0.5])];
+        assert!(verdicts(&capped)[1].improves.is_empty());
+        let far = [line(0, [0.9, 0.9], [0.5, 0.5]), line(25000, [0.5, 0.5], [0.5, 0.5])];
+        assert!(!verdicts(&far)[1].compared);
+
+        // 20 000 steps without an improvement after the last one: flat.
+        let mut flat = lines.to_vec();
+        for step in [30000, 35000, 40000, 45000] {
+            flat.push(line(step, [0.60, 0.62], [0.70, 0.80]));
+        }
+        let s = standing(&flat).unwrap();
+        assert_eq!((s.last, s.last_improvement, s.flat()), (45000, 25000, true));
+        assert_eq!(s.improved, ["appearance follows j"]);
+        assert_eq!(standing(&[]), None);
+    }
+}
