@@ -44,10 +44,9 @@ fn mean(v: &[f64]) -> f64 {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Verdict {
     pub step: i64,
-    /// The scores it improves (empty: none), by their evaluation names.
+    /// The scores it improves (empty: none, or no earlier evaluation within [`FLAT_STEPS`]),
+    /// by their evaluation names.
     pub improves: Vec<String>,
-    /// Whether an earlier evaluation lies within [`FLAT_STEPS`] before it to compare with.
-    pub compared: bool,
 }
 
 /// Each curve line's verdict, in the curve's order.
@@ -93,7 +92,7 @@ pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
                 })
                 .map(|((name, _), _)| name.to_string())
                 .collect();
-            Verdict { step, improves, compared: !before.is_empty() }
+            Verdict { step, improves }
         })
         .collect()
 }
@@ -151,15 +150,17 @@ mod tests {
             improves,
             [vec![], vec!["frechet distance".to_string()], vec![], vec![], vec!["appearance follows j".to_string()]]
         );
-        assert_eq!(v.iter().map(|v| v.compared).collect::<Vec<_>>(), [false, true, true, true, true]);
         let s = standing(&lines).unwrap();
         assert_eq!((s.last, s.last_improvement, s.flat()), (25000, 25000, false));
 
         // Positions past the real end count as 1; the best is taken over the window only.
         let capped = [line(0, [1.0, 1.0], [0.5, 0.5]), line(5000, [1.3, 1.3], [0.5, 0.5])];
         assert!(verdicts(&capped)[1].improves.is_empty());
-        let far = [line(0, [0.9, 0.9], [0.5, 0.5]), line(25000, [0.5, 0.5], [0.5, 0.5])];
-        assert!(!verdicts(&far)[1].compared);
+        // A far better evaluation more than FLAT_STEPS after the last one has nothing to beat.
+        let far = [line(0, [0.5, 0.5], [0.5, 0.5]), line(25000, [0.9, 0.9], [0.5, 0.5])];
+        assert!(verdicts(&far)[1].improves.is_empty());
+        let near = [line(0, [0.5, 0.5], [0.5, 0.5]), line(20000, [0.9, 0.9], [0.5, 0.5])];
+        assert_eq!(verdicts(&near)[1].improves, ["frechet distance"]);
 
         // 20 000 steps without an improvement after the last one: flat.
         let mut flat = lines.to_vec();
