@@ -73,9 +73,18 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     gdrf_core::io::save_png(&out, &img)?;
     println!("wrote {} ({} logged steps, moving average over {})", out.display(), records.len(), a.smooth);
     // The learning curve, where the run scores itself (`[eval] interval`).
-    if let (Some(c), Some(f)) = (curve::plot(&a.run_dir)?, curve::filmstrip(&a.run_dir)?) {
+    // A curve whose evaluation frames are gone (a copy made without them) still has a
+    // standing; only the filmstrip is left out.
+    if let Some(c) = curve::plot(&a.run_dir)? {
         let lines = curve::read(&a.run_dir)?;
-        println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), lines.len());
+        match curve::filmstrip(&a.run_dir)? {
+            Some(f) => println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), lines.len()),
+            None => println!(
+                "wrote {} ({} evaluations; no filmstrip: no evaluation kept its frame)",
+                c.display(),
+                lines.len()
+            ),
+        }
         if let Some(s) = standing(&lines) {
             println!("{s}");
         }

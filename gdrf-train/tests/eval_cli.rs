@@ -435,8 +435,10 @@ fn probe_learns_and_eval_is_calibrated() {
     gdrf_train(&["plot", s]);
     let redrawn = std::fs::read(snap.join("filmstrip.png")).unwrap();
     assert_eq!(redrawn, std::fs::read(run.join("filmstrip.png")).unwrap(), "filmstrip re-drawn from the copy");
-    // A second snapshot replaces the first whole and leaves no temporary folder beside it.
+    // A second snapshot replaces the first whole and leaves no temporary folder beside it;
+    // it removes the one a killed snapshot left (4 194 305: above Linux's largest process id).
     std::fs::write(snap.join("stray.txt"), "from before").unwrap();
+    std::fs::create_dir_all(tmp.path(".snapshot.tmp-4194305/checkpoints")).unwrap();
     gdrf_train(&["snapshot", r, "--out", s]);
     assert_eq!(listing(&snap), copied);
     let beside: Vec<_> = std::fs::read_dir(&tmp.0)
@@ -445,6 +447,13 @@ fn probe_learns_and_eval_is_calibrated() {
         .filter(|n| n.starts_with(".snapshot"))
         .collect();
     assert!(beside.is_empty(), "{beside:?}");
+    // A copy without its frames still plots its curve and says where the curve stands.
+    std::fs::remove_dir_all(snap.join("evals")).unwrap();
+    std::fs::remove_file(snap.join("filmstrip.png")).unwrap();
+    let said = gdrf_train(&["plot", s]);
+    assert!(said.contains("no filmstrip") && said.contains("before its last evaluation (step 4)"), "{said}");
+    assert!(!snap.join("filmstrip.png").exists());
+    gdrf_train(&["snapshot", r, "--out", s]);
     // A folder that is neither empty nor a run (here the dataset), the run itself and a
     // folder holding it are refused by name and left as they were.
     for (out, expect) in [

@@ -70,6 +70,7 @@ fn resolved(path: &Path) -> PathBuf {
 /// frames into `out`, replacing `out` whole. The copy is made in a temporary folder beside
 /// `out` and renamed into place, so `out` holds either the previous snapshot or the new one,
 /// never a mixture (between the two renames, the previous one is kept as `.NAME.old-PID`).
+/// What a killed snapshot left beside `out` goes once the new one is in place.
 /// Holds the run's lock while copying: a run being trained is refused, not copied midway.
 pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
     if !run_dir.join(run::CONFIG).is_file() {
@@ -148,7 +149,29 @@ pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
     if old.exists() {
         std::fs::remove_dir_all(&old).map_err(io(&old))?;
     }
+    remove_leftovers(&parent, &name)?;
     Ok(Snapshot { step, files: files.len(), frames })
+}
+
+/// Removes the `.NAME.tmp-PID` and `.NAME.old-PID` folders that an earlier snapshot into
+/// `parent/NAME` left when it was killed, now that a complete snapshot stands in their place.
+/// Only those of processes that no longer run (no `/proc/PID`): another snapshot into the
+/// same folder may be copying right now. Where there is no `/proc`, nothing is removed.
+fn remove_leftovers(parent: &Path, name: &str) -> Result<()> {
+    let proc = Path::new("/proc");
+    if !proc.is_dir() {
+        return Ok(());
+    }
+    for entry in std::fs::read_dir(parent).map_err(io(parent))? {
+        let path = entry.map_err(io(parent))?.path();
+        let file = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let pid = [".tmp-", ".old-"].iter().find_map(|kind| file.strip_prefix(&format!(".{name}{kind}")));
+        let Some(pid) = pid.filter(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit())) else { continue };
+        if path.is_dir() && !proc.join(pid).exists() {
+            std::fs::remove_dir_all(&path).map_err(io(&path))?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -167,5 +190,24 @@ mod tests {
         let e = snapshot(&run_dir, &inside).unwrap_err().to_string();
         assert!(e.contains("must not hold one another"), "{e}");
         assert!(!run_dir.join("copies").exists() && !run_dir.join(run::LOCK).exists());
+    }
+
+    #[test]
+    fn leftovers_of_dead_snapshots_are_removed_and_nothing_else() {
+        let tmp = crate::paths::TempDir::new("snapshot-leftovers").unwrap();
+        // 4 194 305 is above Linux's largest process id (2^22), so never a running process.
+        let dead = [".snap.tmp-4194305", ".snap.old-4194305"];
+        let live = format!(".snap.tmp-{}", std::process::id());
+        let others = [".other.tmp-4194305", ".snap.tmp-", ".snap.tmp-12x", "snap"];
+        for d in dead.iter().copied().chain([live.as_str()]).chain(others) {
+            std::fs::create_dir_all(tmp.path(d).join("checkpoints")).unwrap();
+        }
+        remove_leftovers(&tmp.0, "snap").unwrap();
+        for d in dead {
+            assert!(!tmp.path(d).exists(), "{d}");
+        }
+        for d in [live.as_str()].into_iter().chain(others) {
+            assert!(tmp.path(d).join("checkpoints").is_dir(), "{d}");
+        }
     }
 }
