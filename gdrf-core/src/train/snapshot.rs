@@ -122,8 +122,9 @@ pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
     };
     let name = to.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     std::fs::create_dir_all(&parent).map_err(io(&parent))?;
-    let stage = parent.join(format!(".{name}.tmp-{}", std::process::id()));
-    let old = parent.join(format!(".{name}.old-{}", std::process::id()));
+    let pid = std::process::id();
+    let stage = parent.join(format!("{}{pid}", side_prefix(&name, STAGE)));
+    let old = parent.join(format!("{}{pid}", side_prefix(&name, OLD)));
     let _ = std::fs::remove_dir_all(&stage);
     let copied = (|| -> Result<()> {
         for (source, under) in &files {
@@ -153,6 +154,17 @@ pub fn snapshot(run_dir: &Path, out: &Path) -> Result<Snapshot> {
     Ok(Snapshot { step, files: files.len(), frames })
 }
 
+/// The kinds of folder a snapshot into `parent/NAME` keeps beside it while it runs: the copy
+/// being written, and the previous snapshot between the two renames.
+const STAGE: &str = "tmp";
+const OLD: &str = "old";
+
+/// `.NAME.KIND-`, which the process id completes: hidden, and one per process, so that two
+/// snapshots never share one.
+fn side_prefix(name: &str, kind: &str) -> String {
+    format!(".{name}.{kind}-")
+}
+
 /// Removes the `.NAME.tmp-PID` and `.NAME.old-PID` folders that an earlier snapshot into
 /// `parent/NAME` left when it was killed, now that a complete snapshot stands in their place.
 /// Only those of processes that no longer run (no `/proc/PID`): another snapshot into the
@@ -165,7 +177,7 @@ fn remove_leftovers(parent: &Path, name: &str) -> Result<()> {
     for entry in std::fs::read_dir(parent).map_err(io(parent))? {
         let path = entry.map_err(io(parent))?.path();
         let file = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let pid = [".tmp-", ".old-"].iter().find_map(|kind| file.strip_prefix(&format!(".{name}{kind}")));
+        let pid = [STAGE, OLD].iter().find_map(|kind| file.strip_prefix(&side_prefix(name, kind)));
         let Some(pid) = pid.filter(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit())) else { continue };
         if path.is_dir() && !proc.join(pid).exists() {
             std::fs::remove_dir_all(&path).map_err(io(&path))?;
