@@ -333,7 +333,8 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     assert_eq!(points[0]["novel_psnr_per_object"].as_array().map(Vec::len), Some(1));
 
     // --only keeps the reference, the defaults and the methods named; --skip passes over
-    // held-out objects, and asking past them names the flag.
+    // held-out objects, and asking past them names the flag; --noise-seeds inverts every
+    // object once per seed and averages over all of them.
     let meta = gdrf_core::data::Metadata::load(&data).unwrap();
     let held = meta.images.iter().filter(|r| r.split == gdrf_core::data::Split::HeldOut).count();
     assert!(held >= 3, "the bench dataset holds {held} held-out images");
@@ -341,13 +342,37 @@ fn the_bench_scores_every_method_from_one_start_and_writes_its_outputs() {
     let only = tmp.path("only");
     let mut args = vec!["bench", "--dataset", data.to_str().unwrap(), "--views", "1", "--reference-steps", "2"];
     args.extend(["--steps", "2", "--resolution", "16", "--samples", "4", "--only", "grid 32 cells,bf16"]);
-    args.extend(["--images", "2", "--skip", &skip, "--out", only.to_str().unwrap()]);
+    args.extend(["--noise-seeds", "3,5", "--images", "2", "--skip", &skip, "--out", only.to_str().unwrap()]);
     let said = ok(&args);
     assert_eq!(said.matches("done: ").count(), 4, "{said}");
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(only.with_extension("json")).unwrap()).unwrap();
     assert_eq!(json["skip"].as_u64(), Some(held as u64 - 2));
-    assert_eq!(json["points"][0]["novel_psnr_per_object"].as_array().map(Vec::len), Some(2));
+    assert_eq!(json["noise_seeds"], serde_json::json!([3, 5]));
+    let floats =
+        |v: &serde_json::Value| -> Vec<f64> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect() };
+    for p in json["points"].as_array().unwrap() {
+        let (objects, seeds) = (floats(&p["novel_psnr_per_object"]), floats(&p["novel_psnr_per_noise_seed"]));
+        assert_eq!((objects.len(), seeds.len()), (2, 2), "{p}");
+        // Both are means over the same four inversions, as is the point's own score.
+        let mean = p["novel_psnr"].as_f64().unwrap();
+        for m in [objects.iter().sum::<f64>() / 2.0, seeds.iter().sum::<f64>() / 2.0] {
+            assert!((m - mean).abs() <= 1e-9 * mean.abs(), "{m} against {mean} in {p}");
+        }
+        // Before a step both seeds hold the same start; after two steps their noise has
+        // moved them apart.
+        if p["steps"] == 0 {
+            assert_eq!(seeds[0], seeds[1], "{p}");
+        } else if p["steps"] == 2 {
+            assert_ne!(seeds[0], seeds[1], "{p}");
+        }
+    }
+    let table = std::fs::read_to_string(only.with_extension("md")).unwrap();
+    assert!(table.contains("noise seed(s) [3, 5]"), "{table}");
+    let seeds_at = args.iter().position(|a| *a == "3,5").unwrap();
+    args[seeds_at] = "3,3";
+    fails(&args, &["--noise-seeds", "seed 3 is given twice"]);
+    args[seeds_at] = "3,5";
     let last = args.len() - 1;
     args[last - 2] = past.as_str();
     fails(&args, &[&format!("held-out images after --skip {past}"), "--images asks for 2"]);

@@ -46,6 +46,12 @@ pub struct Options {
     /// Novel views per object (yaw offsets spread over the turn, same pitch).
     #[arg(long, default_value_t = 4)]
     pub views: usize,
+    /// Renderer-noise seeds (`gdrf-invert --noise-seed`: the jitter and the ray subsets):
+    /// every object is inverted once per seed and every score averaged over all of them.
+    /// Inversion is chaotic in such differences (docs/inversion.md), so one seed does not
+    /// rank settings.
+    #[arg(long, value_delimiter = ',', default_value = "0")]
+    pub noise_seeds: Vec<u64>,
     /// Steps of the reference optimisation (the first method; the paper's 2 000).
     #[arg(long, default_value_t = 2000)]
     pub reference_steps: usize,
@@ -86,6 +92,7 @@ pub struct Report {
     pub dataset: String,
     pub images: usize,
     pub skip: usize,
+    pub noise_seeds: Vec<u64>,
     pub views: usize,
     pub steps: usize,
     pub reference_steps: usize,
@@ -114,11 +121,10 @@ pub struct PoseError {
 pub struct Point {
     pub method: String,
     /// The step budget at this point, and the steps actually run (fewer after an early stop),
-    /// averaged over the objects.
+    /// averaged over the objects and noise seeds (as is every score below).
     pub steps: usize,
     pub steps_run: f64,
-    /// Seconds inside the optimisation's steps (the initialiser's prediction included),
-    /// averaged over the objects.
+    /// Seconds inside the optimisation's steps (the initialiser's prediction included).
     pub seconds: f64,
     pub input_psnr: f64,
     pub input_ssim: f64,
@@ -127,8 +133,12 @@ pub struct Point {
     /// Fraction of the probe's structure classes (legs, back, arms, seat) on the novel
     /// views that match the object's true ones.
     pub structure_agreement: f64,
-    /// The novel-view PSNR of each object, in the order inverted.
+    /// The novel-view PSNR of each object (its mean over the noise seeds), in the order
+    /// inverted.
     pub novel_psnr_per_object: Vec<f64>,
+    /// The novel-view PSNR of each noise seed (its mean over the objects), in the order of
+    /// `--noise-seeds`: how far one draw of the noise moves the score.
+    pub novel_psnr_per_noise_seed: Vec<f64>,
 }
 
 struct Case {
@@ -185,6 +195,13 @@ pub fn run(a: &Options) -> Result<Report> {
     let dev = device::select(&a.device)?;
     if a.images == 0 || a.views == 0 || a.steps == 0 || a.reference_steps == 0 {
         return Err(Error::Invalid("--images, --views, --steps and --reference-steps must be at least 1".into()));
+    }
+    let seeds = &a.noise_seeds;
+    if seeds.is_empty() {
+        return Err(Error::Invalid("--noise-seeds: give at least one seed".into()));
+    }
+    if let Some(twice) = seeds.iter().enumerate().find_map(|(i, s)| seeds[..i].contains(s).then_some(s)) {
+        return Err(Error::Invalid(format!("--noise-seeds: seed {twice} is given twice")));
     }
     let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
@@ -300,9 +317,10 @@ pub fn run(a: &Options) -> Result<Report> {
         always.contains(name) || a.only.is_empty() || a.only.iter().any(|o| name.contains(o.as_str()))
     });
     eprintln!(
-        "benchmarking inversion on {} held-out objects of {} at {res}², {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
+        "benchmarking inversion on {} held-out objects of {} at {res}², {} noise seed(s), {} novel views each, {} steps; {} methods; device {dev:?}, {threads} threads",
         cases.len(),
         a.dataset.display(),
+        seeds.len(),
         a.views,
         a.steps,
         methods.len()
@@ -311,53 +329,58 @@ pub fn run(a: &Options) -> Result<Report> {
     let mut pose_errors = Vec::new();
     // Optimisation steps over every method and object (the reference's dominate).
     let total: usize = methods.iter().map(|(_, _, c)| c.steps).sum();
-    let bar = ProgressBar::new((total * cases.len()) as u64).with_style(
+    let bar = ProgressBar::new((total * cases.len() * seeds.len()) as u64).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
             .expect("valid template"),
     );
     for (name, use_init, cfg) in &methods {
         bar.set_message(name.clone());
-        // Sums over the cases, per checkpoint.
+        // Sums over the cases and noise seeds, per checkpoint; novel-view PSNR per
+        // (checkpoint, object, seed).
         let checkpoints = checkpoints(cfg.steps);
         let mut sums = vec![[0.0f64; 7]; checkpoints.len()];
-        let mut per_object = vec![Vec::new(); checkpoints.len()];
-        for case in &cases {
-            let t0 = std::time::Instant::now();
-            // At the known pose; the initialiser's own estimate of it is only scored.
-            let init = if *use_init { init.as_ref() } else { None };
-            let started = start_for_photo(g, &cam, &case.photo, Some(case.pose), init)?;
-            let start = started.start;
-            if let Some(p) = started.predicted_pose {
-                let d = p.1 - case.pose.1;
-                let err = ((p.0 - case.pose.0).abs().to_degrees(), d.sin().atan2(d.cos()).abs().to_degrees());
-                if pose_errors.len() < cases.len() {
-                    pose_errors.push(err);
-                }
-            }
-            let start_seconds = t0.elapsed().as_secs_f64();
-            let mut inv = Inverter::new(g, &cam, &case.photo, &start, cfg, Some(&perc))?;
-            let mut last = (0usize, 0.0f64);
-            let counted = bar.position();
-            for (ci, &cp) in checkpoints.iter().enumerate() {
-                while inv.history.len() < cp && !inv.done() {
-                    if let Some(l) = inv.step()? {
-                        last = (l.step + 1, l.seconds);
+        let mut novel = vec![vec![vec![0.0f64; seeds.len()]; cases.len()]; checkpoints.len()];
+        for (oi, case) in cases.iter().enumerate() {
+            for (si, &seed) in seeds.iter().enumerate() {
+                let t0 = std::time::Instant::now();
+                // At the known pose; the initialiser's own estimate of it is only scored.
+                let init = if *use_init { init.as_ref() } else { None };
+                let started = start_for_photo(g, &cam, &case.photo, Some(case.pose), init)?;
+                let start = started.start;
+                if let Some(p) = started.predicted_pose {
+                    let d = p.1 - case.pose.1;
+                    let err = ((p.0 - case.pose.0).abs().to_degrees(), d.sin().atan2(d.cos()).abs().to_degrees());
+                    // One per object: the start does not depend on the noise seed.
+                    if si == 0 && pose_errors.len() < cases.len() {
+                        pose_errors.push(err);
                     }
-                    bar.set_position(counted + inv.history.len() as u64);
                 }
-                // Steps an early stop skips count as done.
-                bar.set_position(counted + cp as u64);
-                let s = score(g, &cam, &inv.features(), case, res, a.samples, &judge)?;
-                let row = &mut sums[ci];
-                row[0] += last.1 + start_seconds;
-                for k in 0..5 {
-                    row[k + 1] += s[k];
+                let start_seconds = t0.elapsed().as_secs_f64();
+                let cfg = InvertConfig { seed, ..cfg.clone() };
+                let mut inv = Inverter::new(g, &cam, &case.photo, &start, &cfg, Some(&perc))?;
+                let mut last = (0usize, 0.0f64);
+                let counted = bar.position();
+                for (ci, &cp) in checkpoints.iter().enumerate() {
+                    while inv.history.len() < cp && !inv.done() {
+                        if let Some(l) = inv.step()? {
+                            last = (l.step + 1, l.seconds);
+                        }
+                        bar.set_position(counted + inv.history.len() as u64);
+                    }
+                    // Steps an early stop skips count as done.
+                    bar.set_position(counted + cp as u64);
+                    let s = score(g, &cam, &inv.features(), case, res, a.samples, &judge)?;
+                    let row = &mut sums[ci];
+                    row[0] += last.1 + start_seconds;
+                    for k in 0..5 {
+                        row[k + 1] += s[k];
+                    }
+                    row[6] += last.0 as f64;
+                    novel[ci][oi][si] = s[2];
                 }
-                row[6] += last.0 as f64;
-                per_object[ci].push(s[2]);
             }
         }
-        let n = cases.len() as f64;
+        let n = (cases.len() * seeds.len()) as f64;
         for (ci, &cp) in checkpoints.iter().enumerate() {
             let r = &sums[ci];
             points.push(Point {
@@ -370,7 +393,10 @@ pub fn run(a: &Options) -> Result<Report> {
                 novel_psnr: r[3] / n,
                 novel_ssim: r[4] / n,
                 structure_agreement: r[5] / n,
-                novel_psnr_per_object: per_object[ci].clone(),
+                novel_psnr_per_object: novel[ci].iter().map(|o| o.iter().sum::<f64>() / seeds.len() as f64).collect(),
+                novel_psnr_per_noise_seed: (0..seeds.len())
+                    .map(|si| novel[ci].iter().map(|o| o[si]).sum::<f64>() / cases.len() as f64)
+                    .collect(),
             });
         }
         // Above the bar, and in logs too (a hidden bar's println writes nothing).
@@ -390,6 +416,7 @@ pub fn run(a: &Options) -> Result<Report> {
         dataset: a.dataset.display().to_string(),
         images: a.images,
         skip: a.skip,
+        noise_seeds: seeds.clone(),
         views: a.views,
         steps: a.steps,
         reference_steps: a.reference_steps,
@@ -460,11 +487,14 @@ impl Report {
     /// method reaching 95 % of the reference's novel-view PSNR gain.
     pub fn markdown(&self) -> String {
         let (points, methods) = (&self.points, self.methods());
-        let mut md = String::from("| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement | novel PSNR per object |\n|---|---|---|---|---|---|---|---|---|\n");
+        let list = |v: &[f64]| v.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>().join(", ");
+        let mut md = format!(
+            "Scores are means over {} held-out object(s) × noise seed(s) {:?}.\n\n| method | steps (run) | seconds | input PSNR | input SSIM | novel PSNR | novel SSIM | structure agreement | novel PSNR per object | novel PSNR per noise seed |\n|---|---|---|---|---|---|---|---|---|---|\n",
+            self.images, self.noise_seeds
+        );
         for p in points {
-            let each: Vec<String> = p.novel_psnr_per_object.iter().map(|v| format!("{v:.2}")).collect();
             md += &format!(
-                "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {} |\n",
+                "| {} | {} ({:.0}) | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.3} | {} | {} |\n",
                 p.method,
                 p.steps,
                 p.steps_run,
@@ -474,7 +504,8 @@ impl Report {
                 p.novel_psnr,
                 p.novel_ssim,
                 p.structure_agreement,
-                each.join(", ")
+                list(&p.novel_psnr_per_object),
+                list(&p.novel_psnr_per_noise_seed)
             );
         }
         // Against the reference (the first method): the novel-view PSNR gain of its last
