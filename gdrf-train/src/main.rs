@@ -292,7 +292,7 @@ fn ship_cmd(a: ShipArgs) -> Result<()> {
         a.out.join("generator.safetensors").display(),
         shipped.from.display()
     );
-    if let Some(line) = plot_cmd::standing(&gdrf_core::train::curve::read(&a.run_dir)?) {
+    if let Some(line) = plot_cmd::standing(&a.run_dir, &gdrf_core::train::curve::read(&a.run_dir)?)? {
         println!("{line}");
     }
     Ok(())

@@ -3,8 +3,9 @@
 use anyhow::{bail, Result};
 use clap::Args;
 use gdrf_core::plot::{draw_panels, smooth, Panel, Series};
+use gdrf_core::train::config::TrainConfig;
 use gdrf_core::train::{curve, plateau, run};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct PlotArgs {
@@ -85,7 +86,7 @@ pub fn plot(a: PlotArgs) -> Result<()> {
                 lines.len()
             ),
         }
-        if let Some(s) = standing(&lines) {
+        if let Some(s) = standing(&a.run_dir, &lines)? {
             println!("{s}");
         }
     }
@@ -93,19 +94,32 @@ pub fn plot(a: PlotArgs) -> Result<()> {
 }
 
 /// Where the learning curve stands under the campaign's flatness rule
-/// ([`gdrf_core::train::plateau`]), in one line.
-pub fn standing(lines: &[serde_json::Value]) -> Option<String> {
-    let s = plateau::standing(lines)?;
+/// ([`gdrf_core::train::plateau`]), in one line. The schedule's changes are the starts of the
+/// run's stages (its config.toml) up to its newest logged step; a change made otherwise (a
+/// loss weight, say) is not in the config's history and is not seen.
+pub fn standing(run_dir: &Path, lines: &[serde_json::Value]) -> Result<Option<String>> {
+    let cfg = TrainConfig::load(&run_dir.join(run::CONFIG))?;
+    let logged = run::read_metrics(run_dir)?.iter().filter_map(|r| r["step"].as_i64()).max();
+    let now = logged.into_iter().chain(lines.iter().filter_map(|l| l["step"].as_i64())).max();
+    let last_change = cfg.stages.iter().skip(1).map(|st| st.from_step).filter(|&f| now.is_some_and(|n| f <= n)).max();
+    let Some(s) = plateau::standing(lines, last_change) else { return Ok(None) };
     let what = if s.improved.is_empty() {
         "first evaluated".to_string()
     } else {
         format!("last improved ({})", s.improved.join(", "))
     };
-    Some(format!(
-        "the curve {what} at step {}, {} steps before its last evaluation (step {}): {}",
+    let counted = match s.last_change {
+        Some(c) if c > s.last_improvement => {
+            format!("; a stage changed the schedule at step {c}, and the rule counts from there")
+        }
+        _ => String::new(),
+    };
+    let gap = s.last - s.since();
+    let gap = if gap >= 0 { format!("{gap} steps before") } else { format!("{} steps after", -gap) };
+    Ok(Some(format!(
+        "the curve {what} at step {}{counted}, {gap} its last evaluation (step {}): {}",
         s.last_improvement,
-        s.last - s.last_improvement,
         s.last,
         if s.flat() { format!("flat (at least {} steps)", plateau::FLAT_STEPS) } else { "not flat".to_string() }
-    ))
+    )))
 }

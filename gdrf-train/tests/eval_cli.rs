@@ -435,6 +435,21 @@ fn probe_learns_and_eval_is_calibrated() {
     gdrf_train(&["plot", s]);
     let redrawn = std::fs::read(snap.join("filmstrip.png")).unwrap();
     assert_eq!(redrawn, std::fs::read(run.join("filmstrip.png")).unwrap(), "filmstrip re-drawn from the copy");
+    // A stage that starts after the last improvement (here: after the first evaluation)
+    // restarts the flatness rule's count from its step.
+    let cfg = snap.join("config.toml");
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    text.push_str("\n[[stages]]\nfrom_step = 3\nresolution = 8\nnum_steps = 4\nbatch_size = 2\nd_lr = 1e-4\n");
+    std::fs::write(&cfg, text).unwrap();
+    let said = gdrf_train(&["plot", s]);
+    let want = if gdrf_core::train::plateau::verdicts(&lines)[1].improves.is_empty() {
+        // Last improved at step 2 (the first evaluation): the stage at step 3 is later.
+        "at step 2; a stage changed the schedule at step 3, and the rule counts from there, 1 steps before its last evaluation (step 4): not flat"
+    } else {
+        // Step 4 improved a score, which is later than the stage.
+        "at step 4, 0 steps before its last evaluation (step 4): not flat"
+    };
+    assert!(said.contains(want), "{said}");
     // A second snapshot replaces the first whole and leaves no temporary folder beside it;
     // it removes the one a killed snapshot left (4 194 305: above Linux's largest process id).
     std::fs::write(snap.join("stray.txt"), "from before").unwrap();

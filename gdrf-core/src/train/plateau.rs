@@ -97,28 +97,38 @@ pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
         .collect()
 }
 
-/// Where a curve stands: its last evaluation, and the last one that improved a score (or,
-/// where none did, its first evaluation).
+/// Where a curve stands: its last evaluation, the last one that improved a score (or,
+/// where none did, its first evaluation), and the last change of the schedule.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Standing {
     pub last: i64,
     pub last_improvement: i64,
     pub improved: Vec<String>,
+    /// The step of the schedule's last change (a stage's start), if the run had one.
+    pub last_change: Option<i64>,
 }
 
 impl Standing {
-    /// Whether the curve has gone [`FLAT_STEPS`] without an improvement.
+    /// The step the flat stretch counts from: the last improvement or the schedule's last
+    /// change, whichever came later (a change restarts the count: the issue's "flat for
+    /// 20 000 steps after the last change").
+    pub fn since(&self) -> i64 {
+        self.last_change.map_or(self.last_improvement, |c| c.max(self.last_improvement))
+    }
+
+    /// Whether the curve has gone [`FLAT_STEPS`] without an improvement or a change.
     pub fn flat(&self) -> bool {
-        self.last - self.last_improvement >= FLAT_STEPS
+        self.last - self.since() >= FLAT_STEPS
     }
 }
 
-/// The curve's standing (`None` for an empty curve).
-pub fn standing(lines: &[Value]) -> Option<Standing> {
+/// The curve's standing (`None` for an empty curve), given the step of the schedule's last
+/// change so far.
+pub fn standing(lines: &[Value], last_change: Option<i64>) -> Option<Standing> {
     let v = verdicts(lines);
     let last = v.last()?.step;
     let at = v.iter().rev().find(|v| !v.improves.is_empty()).unwrap_or(&v[0]);
-    Some(Standing { last, last_improvement: at.step, improved: at.improves.clone() })
+    Some(Standing { last, last_improvement: at.step, improved: at.improves.clone(), last_change })
 }
 
 #[cfg(test)]
@@ -150,7 +160,7 @@ mod tests {
             improves,
             [vec![], vec!["frechet distance".to_string()], vec![], vec![], vec!["appearance follows j".to_string()]]
         );
-        let s = standing(&lines).unwrap();
+        let s = standing(&lines, None).unwrap();
         assert_eq!((s.last, s.last_improvement, s.flat()), (25000, 25000, false));
 
         // Positions past the real end count as 1; the best is taken over the window only.
@@ -167,9 +177,24 @@ mod tests {
         for step in [30000, 35000, 40000, 45000] {
             flat.push(line(step, [0.60, 0.62], [0.70, 0.80]));
         }
-        let s = standing(&flat).unwrap();
+        let s = standing(&flat, None).unwrap();
         assert_eq!((s.last, s.last_improvement, s.flat()), (45000, 25000, true));
         assert_eq!(s.improved, ["appearance follows j"]);
-        assert_eq!(standing(&[]), None);
+        assert_eq!(standing(&[], None), None);
+
+        // A change of the schedule restarts the count: after one at step 40 231 the same
+        // curve is not flat, and 20 000 steps on it is; a change before the last
+        // improvement changes nothing.
+        let s = standing(&flat, Some(40231)).unwrap();
+        assert_eq!((s.since(), s.flat()), (40231, false));
+        let mut later = flat.clone();
+        for step in [50000, 55000, 60000] {
+            later.push(line(step, [0.60, 0.62], [0.70, 0.80]));
+        }
+        assert!(!standing(&later, Some(40231)).unwrap().flat(), "19 769 steps after the change");
+        later.push(line(65000, [0.60, 0.62], [0.70, 0.80]));
+        assert!(standing(&later, Some(40231)).unwrap().flat(), "24 769 steps after the change");
+        let s = standing(&flat, Some(20000)).unwrap();
+        assert_eq!((s.since(), s.flat()), (25000, true));
     }
 }
