@@ -480,7 +480,8 @@ fn every_shipped_config_loads_and_validates() {
 }
 
 /// The campaign's two continuation configs hold the same keys but for the GPU's float32
-/// (the CPU's "auto": bfloat16 where the CPU has bfloat16 instructions) and batch 32.
+/// (the CPU's "auto": bfloat16 where the CPU has bfloat16 instructions) and batch 32, in
+/// both stages: step 0's, and from step 140 231 the same at a quarter of the learning rates.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -488,9 +489,20 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let cpu = TrainConfig::load(&dir.join("chairs-campaign-cpu.toml")).unwrap();
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
-    assert_eq!((cpu.stages.len(), cpu.stages[0].batch_size, gpu.stages[0].batch_size), (1, 8, 32));
+    let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8], vec![32, 32]));
+    assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
+    assert_eq!(cpu.stages[1].from_step, 140_231);
+    assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
+    // Only the learning rates change at step 140 231: no new resolution, so no fade-in.
+    let mut quarter = cpu.stages[1].clone();
+    (quarter.from_step, quarter.g_lr, quarter.d_lr) = (0, None, None);
+    assert_eq!(quarter, cpu.stages[0]);
+    assert_eq!(cpu.alpha(140_231), 1.0);
     gpu.precision = cpu.precision;
-    gpu.stages[0].batch_size = cpu.stages[0].batch_size;
+    for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
+        g.batch_size = c.batch_size;
+    }
     assert_eq!(gpu, cpu);
 }
 
