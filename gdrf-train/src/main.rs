@@ -292,7 +292,9 @@ fn ship_cmd(a: ShipArgs) -> Result<()> {
         a.out.join("generator.safetensors").display(),
         shipped.from.display()
     );
-    if let Some(line) = plot_cmd::standing(&a.run_dir, &gdrf_core::train::curve::read(&a.run_dir)?)? {
+    let (curve, metrics) =
+        (gdrf_core::train::curve::read(&a.run_dir)?, gdrf_core::train::run::read_metrics(&a.run_dir)?);
+    if let Some(line) = plot_cmd::standing(&a.run_dir, &curve, &metrics)? {
         println!("{line}");
     }
     Ok(())

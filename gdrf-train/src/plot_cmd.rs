@@ -48,7 +48,7 @@ fn lookup(v: &serde_json::Value, path: &str) -> f64 {
 
 pub fn plot(a: PlotArgs) -> Result<()> {
     let all = run::read_metrics(&a.run_dir)?;
-    let records: Vec<_> = all.into_iter().filter(|r| r.get("event").is_none()).collect();
+    let records: Vec<_> = all.iter().filter(|r| r.get("event").is_none()).collect();
     if records.is_empty() {
         bail!("{}: metrics.jsonl holds no logged step yet", a.run_dir.display());
     }
@@ -86,7 +86,7 @@ pub fn plot(a: PlotArgs) -> Result<()> {
                 lines.len()
             ),
         }
-        if let Some(s) = standing(&a.run_dir, &lines)? {
+        if let Some(s) = standing(&a.run_dir, &lines, &all)? {
             println!("{s}");
         }
     }
@@ -94,14 +94,14 @@ pub fn plot(a: PlotArgs) -> Result<()> {
 }
 
 /// Where the learning curve stands under the campaign's flatness rule
-/// ([`gdrf_core::train::plateau`]), in one line. The schedule's changes are the starts of the
-/// run's stages (its config.toml) up to its newest logged step; a change made otherwise (a
-/// loss weight, say) is not in the config's history and is not seen.
-pub fn standing(run_dir: &Path, lines: &[serde_json::Value]) -> Result<Option<String>> {
+/// ([`gdrf_core::train::plateau`]), in one line, given its curve and its metrics.jsonl. The
+/// schedule's last change is the start of the stage (its config.toml) in force at the newest
+/// logged step; a change made otherwise (a loss weight, say) is not in the config's history
+/// and is not seen.
+pub fn standing(run_dir: &Path, lines: &[serde_json::Value], metrics: &[serde_json::Value]) -> Result<Option<String>> {
     let cfg = TrainConfig::load(&run_dir.join(run::CONFIG))?;
-    let logged = run::read_metrics(run_dir)?.iter().filter_map(|r| r["step"].as_i64()).max();
-    let now = logged.into_iter().chain(lines.iter().filter_map(|l| l["step"].as_i64())).max();
-    let last_change = cfg.stages.iter().skip(1).map(|st| st.from_step).filter(|&f| now.is_some_and(|n| f <= n)).max();
+    let now = metrics.iter().chain(lines).filter_map(|l| l["step"].as_i64()).max();
+    let last_change = now.map(|n| cfg.stage(n).from_step).filter(|&f| f > 0);
     let Some(s) = plateau::standing(lines, last_change) else { return Ok(None) };
     let what = if s.improved.is_empty() {
         "first evaluated".to_string()
