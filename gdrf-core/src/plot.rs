@@ -14,19 +14,26 @@ pub struct Series {
     pub points: Vec<(f64, f64)>,
 }
 
-/// One panel: a title, its curves (each drawn in its own colour from a fixed palette), and
-/// whether the y axis is log10 (only positive values are plotted then).
+/// One panel: a title, its curves (each drawn in its own colour from a fixed palette),
+/// whether the y axis is log10 (only positive values are plotted then), and x positions
+/// marked by a dashed vertical line (where a training schedule changed, say); a mark outside
+/// the curves' x range is not drawn.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Panel {
     pub title: String,
     pub series: Vec<Series>,
     pub log_y: bool,
+    pub marks: Vec<f64>,
 }
 
 const WHITE: Rgb<u8> = Rgb([255, 255, 255]);
 const INK: Rgb<u8> = Rgb([20, 20, 20]);
 const FRAME: Rgb<u8> = Rgb([70, 70, 70]);
 const GRID: Rgb<u8> = Rgb([225, 225, 225]);
+/// Dashed x marks: darker than the grid so they read as events, lighter than the curves.
+const MARK: Rgb<u8> = Rgb([150, 150, 150]);
+/// A dashed mark paints `DASH` pixels of every `2 × DASH`.
+const DASH: i64 = 4;
 /// Matplotlib's "tab10": ten distinct colours that readers already associate with curves.
 #[rustfmt::skip]
 const PALETTE: [Rgb<u8>; 10] = [
@@ -334,6 +341,14 @@ fn draw_panel(img: &mut RgbImage, p: &Panel, ox: i64, oy: i64, w: i64, h: i64) {
         fill(img, a.l - 3, y, 3, 1, FRAME);
         draw_text(img, a.l - 5 - text_width(s, SCALE), y - ch / 2, s, INK, SCALE);
     }
+    if lay.has_data {
+        for &m in p.marks.iter().filter(|m| (ax.x.0..=ax.x.1).contains(*m)) {
+            let (x, _) = ax.map((m, ax.y.0));
+            for y in (a.t..a.b).step_by(2 * DASH as usize) {
+                fill(img, x, y, 1, DASH.min(a.b - y), MARK);
+            }
+        }
+    }
     outline(img, a, FRAME);
     if !lay.has_data {
         let s = "no data";
@@ -425,7 +440,7 @@ mod tests {
         Series { name: name.into(), points }
     }
     fn panel(series: Vec<Series>, log_y: bool) -> Panel {
-        Panel { title: "g_adv".into(), series, log_y }
+        Panel { title: "g_adv".into(), series, log_y, marks: vec![] }
     }
 
     #[test]
@@ -437,6 +452,27 @@ mod tests {
         let blank = draw_panels(&[], 2, 40, 30);
         assert_eq!(blank.dimensions(), (40, 30));
         assert!(blank.pixels().all(|p| *p == WHITE));
+    }
+
+    #[test]
+    fn a_mark_is_a_dashed_column_inside_the_x_range_and_absent_outside_it() {
+        let mut p = panel(vec![series("loss", vec![(0.0, 0.0), (10.0, 1.0)])], false);
+        p.marks = vec![5.0, 12.0, -1.0];
+        let img = draw_panels(std::slice::from_ref(&p), 1, 360, 240);
+        let lay = layout(&p, 0, 0, 360, 240);
+        let (a, (x, _)) = (lay.axes.area, lay.axes.map((5.0, 0.0)));
+        let marked: Vec<(u32, u32)> =
+            img.enumerate_pixels().filter(|(_, _, c)| **c == MARK).map(|(x, y, _)| (x, y)).collect();
+        // Only the mark inside [0, 10] is drawn, one pixel wide.
+        assert!(marked.iter().all(|&(mx, _)| mx as i64 == x), "{marked:?}");
+        // Dashed: DASH pixels on, DASH off, from the top of the plot area down (the curve
+        // crosses the column once, and may hide a few).
+        let on = |y: i64| marked.contains(&(x as u32, y as u32));
+        let (dashes, gaps) = (a.t..a.b).partition::<Vec<i64>, _>(|y| (y - a.t) % (2 * DASH) < DASH);
+        assert!(dashes.iter().filter(|&&y| on(y)).count() + 6 >= dashes.len(), "{marked:?}");
+        assert!(gaps.iter().all(|&y| !on(y)));
+        p.marks.clear();
+        assert!(!draw_panels(&[p], 1, 360, 240).pixels().any(|c| *c == MARK));
     }
 
     #[test]

@@ -52,11 +52,14 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     if records.is_empty() {
         bail!("{}: metrics.jsonl holds no logged step yet", a.run_dir.display());
     }
+    // Where a stage of the run's config starts, so a jump in a loss can be read against it.
+    let marks: Vec<f64> = curve::stage_starts(&a.run_dir)?.iter().map(|&(step, _)| step as f64).collect();
     let panels: Vec<Panel> = PANELS
         .iter()
         .map(|(title, log_y, series)| Panel {
             title: title.to_string(),
             log_y: *log_y,
+            marks: marks.clone(),
             series: series
                 .iter()
                 .map(|(name, path)| {

@@ -464,11 +464,13 @@ impl Report {
                 title: "novel-view PSNR vs seconds".into(),
                 series: series(&|p| (p.seconds, p.novel_psnr)),
                 log_y: false,
+                marks: vec![],
             },
             Panel {
                 title: "input-view PSNR vs seconds".into(),
                 series: series(&|p| (p.seconds, p.input_psnr)),
                 log_y: false,
+                marks: vec![],
             },
         ];
         if let Some(dir) = out.parent() {

@@ -582,7 +582,7 @@ pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
         points: history.iter().map(|l| (l.step as f64, f(l))).collect(),
     };
     vec![
-        Panel { title: "loss".into(), series: vec![series("total", &|l| l.loss)], log_y: true },
+        Panel { title: "loss".into(), series: vec![series("total", &|l| l.loss)], log_y: true, marks: vec![] },
         Panel {
             title: "terms".into(),
             series: vec![
@@ -591,6 +591,7 @@ pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
                 series("prior", &|l| l.prior),
             ],
             log_y: true,
+            marks: vec![],
         },
     ]
 }

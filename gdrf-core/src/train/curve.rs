@@ -9,6 +9,7 @@
 //! RUN_DIR/evals/step-NNNNNNNN/          seeds.json, and seed-S/{eval.json,report.png}, as `gdrf-train eval --seeds` writes them,
 //!                                       and the EMA generator scored (generator.safetensors)
 //! ```
+use super::config::TrainConfig;
 use super::run;
 use crate::eval::result::EvalResult;
 use crate::eval::seeds::SeedSummary;
@@ -243,10 +244,38 @@ pub const GOAL_STRUCTURE: f64 = 0.75;
 /// What the goal asks of every position (docs/training.md, "The campaign").
 pub const GOAL_POSITION: f64 = 0.75;
 
+/// Where the run's schedule changed: the step and the images seen at the start of each
+/// stage after the first that its logged steps reached (the stages of RUN_DIR/config.toml,
+/// the counts of metrics.jsonl). Empty for a folder without either (a copy of the curve
+/// alone). A change made outside the stages is not in the config's history and is not seen.
+pub fn stage_starts(run_dir: &Path) -> Result<Vec<(i64, i64)>> {
+    let (config, metrics) = (run_dir.join(run::CONFIG), run_dir.join(run::METRICS));
+    if !config.exists() || !metrics.exists() {
+        return Ok(Vec::new());
+    }
+    let cfg = TrainConfig::load(&config)?;
+    let records = run::read_metrics(run_dir)?;
+    let logged = |r: &&serde_json::Value| r.get("event").is_none();
+    Ok(cfg
+        .stages
+        .iter()
+        .skip(1)
+        .filter_map(|s| {
+            // The first logged step at or after the start. Its record counts the images
+            // up to and including that step, and each step since the start took the stage's
+            // own batch.
+            let r = records.iter().filter(logged).find(|r| r["step"].as_i64().is_some_and(|k| k >= s.from_step))?;
+            let (k, images, batch) = (r["step"].as_i64()?, r["images_seen"].as_i64()?, r["batch_size"].as_i64()?);
+            Some((s.from_step, images - (k + 1 - s.from_step) * batch))
+        })
+        .collect())
+}
+
 /// Draws RUN_DIR/curve.png from curve.jsonl: the position of each calibrated score's seed
 /// mean, the worst position over seeds, the yaw error in degrees, how often swaps follow
 /// their code (structure, colour, beside the real ends) and the seconds per step, all
-/// against thousands of images seen. Nothing is drawn for a run without a curve.
+/// against thousands of images seen, with a dashed line where a stage starts
+/// ([`stage_starts`]). Nothing is drawn for a run without a curve.
 pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
     let lines = read(run_dir)?;
     if lines.is_empty() {
@@ -257,6 +286,12 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
         l["scores"]["scores"].as_array()?.iter().find(|s| s["score"] == name).cloned()
     };
     let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    // Only the starts the curve spans: a line beyond its last evaluation is not drawn.
+    let span = |l: Option<&serde_json::Value>| l.and_then(|l| l["images_seen"].as_i64()).unwrap_or(0);
+    let (first, last) = (span(lines.first()), span(lines.last()));
+    let starts: Vec<(i64, i64)> =
+        stage_starts(run_dir)?.into_iter().filter(|&(_, images)| (first..=last).contains(&images)).collect();
+    let marks: Vec<f64> = starts.iter().map(|&(_, images)| images as f64 / 1000.0).collect();
     let goal = |points: usize| Series {
         name: format!("goal {GOAL_POSITION}"),
         points: lines.iter().take(points.max(1)).map(|l| (x(l), GOAL_POSITION)).collect(),
@@ -319,12 +354,23 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
             title: "position, mean of seeds".into(),
             series: per_score(&|s| num(&s["mean"]["position"])),
             log_y: false,
+            marks: marks.clone(),
         },
-        Panel { title: "position, worst seed".into(), series: per_score(&|s| num(&s["worst_position"])), log_y: false },
-        Panel { title: "yaw error deg".into(), series: yaw, log_y: false },
+        Panel {
+            title: "position, worst seed".into(),
+            series: per_score(&|s| num(&s["worst_position"])),
+            log_y: false,
+            marks: marks.clone(),
+        },
+        Panel { title: "yaw error deg".into(), series: yaw, log_y: false, marks: marks.clone() },
         // No goal line: structure's is in the title, and colour's is its real line, which a
         // line at 0.75 would hide whenever the real rate is 0.75 too.
-        Panel { title: format!("swaps following code, goal structure {GOAL_STRUCTURE}"), series: swaps, log_y: false },
+        Panel {
+            title: format!("swaps following code, goal structure {GOAL_STRUCTURE}"),
+            series: swaps,
+            log_y: false,
+            marks: marks.clone(),
+        },
         Panel {
             title: "seconds per step".into(),
             series: vec![
@@ -335,14 +381,19 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
                 Series { name: "mean".into(), points: lines.iter().map(x).zip(mean_step_seconds(&lines)).collect() },
             ],
             log_y: false,
+            marks,
         },
     ];
     let mut img = draw_panels(&panels, 2, 520, 320);
-    let caption = format!(
+    let mut caption = format!(
         "x: thousand images seen. {} evaluations, last at step {}",
         lines.len(),
         lines.last().map_or(0, |l| l["step"].as_i64().unwrap_or(0))
     );
+    if !starts.is_empty() {
+        let steps: Vec<String> = starts.iter().map(|(step, _)| step.to_string()).collect();
+        caption += &format!(". Dashed: a stage of config.toml starts (step {})", steps.join(", "));
+    }
     let mut with_caption = image::RgbImage::from_pixel(img.width(), img.height() + 18, image::Rgb([255, 255, 255]));
     image::imageops::overlay(&mut with_caption, &img, 0, 0);
     draw_text(&mut with_caption, 10, img.height() as i64 + 4, &caption, image::Rgb([20, 20, 20]), 1);
