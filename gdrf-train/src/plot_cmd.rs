@@ -52,8 +52,11 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     if records.is_empty() {
         bail!("{}: metrics.jsonl holds no logged step yet", a.run_dir.display());
     }
-    // Where a stage of the run's config starts, so a jump in a loss can be read against it.
-    let marks: Vec<f64> = curve::stage_starts(&a.run_dir)?.iter().map(|&(step, _)| step as f64).collect();
+    // Where a stage of the run's config starts, so a jump in a loss can be read against it
+    // (none for a folder of metrics without its config).
+    let config = a.run_dir.join(run::CONFIG);
+    let starts = if config.exists() { curve::stage_starts(&TrainConfig::load(&config)?, &all) } else { Vec::new() };
+    let marks: Vec<f64> = starts.iter().map(|&(step, _)| step as f64).collect();
     let panels: Vec<Panel> = PANELS
         .iter()
         .map(|(title, log_y, series)| Panel {

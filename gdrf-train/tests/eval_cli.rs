@@ -452,7 +452,9 @@ fn probe_learns_and_eval_is_calibrated() {
     assert!(said.contains(want), "{said}");
     // curve.png and losses.png mark the stage's start: step 3, after 3 steps of batch 2
     // (curve.jsonl counts the images of the steps done, as the stage's start does).
-    assert_eq!(gdrf_core::train::curve::stage_starts(&snap).unwrap(), [(3, 6)]);
+    let snap_cfg = gdrf_core::train::config::TrainConfig::load(&cfg).unwrap();
+    let snap_metrics = gdrf_core::train::run::read_metrics(&snap).unwrap();
+    assert_eq!(gdrf_core::train::curve::stage_starts(&snap_cfg, &snap_metrics), [(3, 6)]);
     // A second snapshot replaces the first whole and leaves no temporary folder beside it;
     // it removes the one a killed snapshot left (4 194 305: above Linux's largest process id).
     std::fs::write(snap.join("stray.txt"), "from before").unwrap();

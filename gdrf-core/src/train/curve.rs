@@ -244,31 +244,33 @@ pub const GOAL_STRUCTURE: f64 = 0.75;
 /// What the goal asks of every position (docs/training.md, "The campaign").
 pub const GOAL_POSITION: f64 = 0.75;
 
-/// Where the run's schedule changed: the step and the images seen at the start of each
-/// stage after the first that its logged steps reached (the stages of RUN_DIR/config.toml,
-/// the counts of metrics.jsonl). Empty for a folder without either (a copy of the curve
-/// alone). A change made outside the stages is not in the config's history and is not seen.
-pub fn stage_starts(run_dir: &Path) -> Result<Vec<(i64, i64)>> {
-    let (config, metrics) = (run_dir.join(run::CONFIG), run_dir.join(run::METRICS));
-    if !config.exists() || !metrics.exists() {
-        return Ok(Vec::new());
-    }
-    let cfg = TrainConfig::load(&config)?;
-    let records = run::read_metrics(run_dir)?;
+/// Where a run's schedule changed: the step and the images seen at the start of each stage
+/// of `cfg` after the first that the run's logged steps (`metrics`, its metrics.jsonl)
+/// reached. A change made outside the stages is not in the config's history and is not seen.
+pub fn stage_starts(cfg: &TrainConfig, metrics: &[serde_json::Value]) -> Vec<(i64, i64)> {
     let logged = |r: &&serde_json::Value| r.get("event").is_none();
-    Ok(cfg
-        .stages
+    cfg.stages
         .iter()
         .skip(1)
         .filter_map(|s| {
             // The first logged step at or after the start. Its record counts the images
             // up to and including that step, and each step since the start took the stage's
             // own batch.
-            let r = records.iter().filter(logged).find(|r| r["step"].as_i64().is_some_and(|k| k >= s.from_step))?;
+            let r = metrics.iter().filter(logged).find(|r| r["step"].as_i64().is_some_and(|k| k >= s.from_step))?;
             let (k, images, batch) = (r["step"].as_i64()?, r["images_seen"].as_i64()?, r["batch_size"].as_i64()?);
             Some((s.from_step, images - (k + 1 - s.from_step) * batch))
         })
-        .collect())
+        .collect()
+}
+
+/// [`stage_starts`] of the run in `run_dir`, from its config.toml and metrics.jsonl; none
+/// for a folder without either (a copy of the curve alone).
+fn run_stage_starts(run_dir: &Path) -> Result<Vec<(i64, i64)>> {
+    let config = run_dir.join(run::CONFIG);
+    if !config.exists() || !run_dir.join(run::METRICS).exists() {
+        return Ok(Vec::new());
+    }
+    Ok(stage_starts(&TrainConfig::load(&config)?, &run::read_metrics(run_dir)?))
 }
 
 /// Draws RUN_DIR/curve.png from curve.jsonl: the position of each calibrated score's seed
@@ -290,7 +292,7 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
     let span = |l: Option<&serde_json::Value>| l.and_then(|l| l["images_seen"].as_i64()).unwrap_or(0);
     let (first, last) = (span(lines.first()), span(lines.last()));
     let starts: Vec<(i64, i64)> =
-        stage_starts(run_dir)?.into_iter().filter(|&(_, images)| (first..=last).contains(&images)).collect();
+        run_stage_starts(run_dir)?.into_iter().filter(|&(_, images)| (first..=last).contains(&images)).collect();
     let marks: Vec<f64> = starts.iter().map(|&(_, images)| images as f64 / 1000.0).collect();
     let goal = |points: usize| Series {
         name: format!("goal {GOAL_POSITION}"),
