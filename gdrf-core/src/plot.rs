@@ -111,6 +111,19 @@ pub(crate) fn fill(img: &mut RgbImage, x: i64, y: i64, w: i64, h: i64, c: Rgb<u8
     }
 }
 
+/// A mark one pixel wide and `len` long from (x, y), down or to the right: `DASH` pixels
+/// on, `DASH` off, clipped to the image.
+pub(crate) fn draw_dashes(img: &mut RgbImage, x: i64, y: i64, len: i64, down: bool) {
+    for o in (0..len).step_by(2 * DASH as usize) {
+        let d = DASH.min(len - o);
+        if down {
+            fill(img, x, y + o, 1, d, MARK);
+        } else {
+            fill(img, x + o, y, d, 1, MARK);
+        }
+    }
+}
+
 /// Draws `s` with its top-left corner at (x, y).
 pub(crate) fn draw_text(img: &mut RgbImage, x: i64, y: i64, s: &str, c: Rgb<u8>, scale: u32) {
     let sc = scale as i64;
@@ -344,9 +357,7 @@ fn draw_panel(img: &mut RgbImage, p: &Panel, ox: i64, oy: i64, w: i64, h: i64) {
     if lay.has_data {
         for &m in p.marks.iter().filter(|m| (ax.x.0..=ax.x.1).contains(*m)) {
             let (x, _) = ax.map((m, ax.y.0));
-            for y in (a.t..a.b).step_by(2 * DASH as usize) {
-                fill(img, x, y, 1, DASH.min(a.b - y), MARK);
-            }
+            draw_dashes(img, x, a.t, a.b - a.t, true);
         }
     }
     outline(img, a, FRAME);

@@ -455,6 +455,31 @@ fn probe_learns_and_eval_is_calibrated() {
     let snap_cfg = gdrf_core::train::config::TrainConfig::load(&cfg).unwrap();
     let snap_metrics = gdrf_core::train::run::read_metrics(&snap).unwrap();
     assert_eq!(gdrf_core::train::curve::stage_starts(&snap_cfg, &snap_metrics), [(3, 6)]);
+    // The filmstrip marks it too: the evaluation at step 2 came before the stage's first
+    // step, the one at step 4 after it, so a dashed line (4 px on, 4 off, grey 150) runs
+    // through the gap above the step-4 row (rows 48 px tall, 6 apart) and that row's label
+    // names the stage in the space below its two lines. Nothing else changes.
+    let plain = image::open(run.join("filmstrip.png")).unwrap().to_rgb8();
+    let marked = image::open(snap.join("filmstrip.png")).unwrap().to_rgb8();
+    assert_eq!(marked.dimensions(), plain.dimensions());
+    let (gap_y, row_y) = (6 + 48 + 3, 6 + 48 + 6);
+    let label = |x: u32, y: u32| x < 96 && (row_y + 26..row_y + 45).contains(&y);
+    let white = image::Rgb([255u8; 3]);
+    let mut inked = 0;
+    for (x, y, &p) in marked.enumerate_pixels() {
+        let was = *plain.get_pixel(x, y);
+        if y == gap_y {
+            assert_eq!(was, white, "({x}, {y}) unmarked");
+            let dash = if x % 8 < 4 { image::Rgb([150u8; 3]) } else { white };
+            assert_eq!(p, dash, "({x}, {y})");
+        } else if label(x, y) {
+            assert_eq!(was, white, "({x}, {y}) unmarked");
+            inked += usize::from(p != white);
+        } else {
+            assert_eq!(p, was, "({x}, {y})");
+        }
+    }
+    assert!(inked > 50, "the stage's label drew {inked} pixels");
     // A second snapshot replaces the first whole and leaves no temporary folder beside it;
     // it removes the one a killed snapshot left (4 194 305: above Linux's largest process id).
     std::fs::write(snap.join("stray.txt"), "from before").unwrap();

@@ -13,7 +13,7 @@ use super::config::TrainConfig;
 use super::run;
 use crate::eval::result::EvalResult;
 use crate::eval::seeds::SeedSummary;
-use crate::plot::{draw_panels, draw_text, Panel, Series};
+use crate::plot::{draw_dashes, draw_panels, draw_text, Panel, Series};
 use crate::{io, Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -443,7 +443,9 @@ fn frame(r: &EvalResult) -> Result<image::RgbImage> {
 }
 
 /// Stacks the frames of every evaluation on the curve into RUN_DIR/filmstrip.png, each
-/// row labelled with its step and images seen.
+/// row labelled with its step and images seen. Where a stage of the config starts between
+/// two rows ([`stage_starts`]), a dashed line runs through the gap above the first row it
+/// trained, and that row's label names the stage's first step.
 pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
     let mut rows = Vec::new();
     for l in read(run_dir)? {
@@ -455,22 +457,33 @@ pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
         let img = image::open(&path)
             .map_err(|e| Error::Data { path: path.clone(), reason: format!("not a readable image: {e}") })?
             .to_rgb8();
-        rows.push((format!("step {step}"), format!("{}k images", l["images_seen"].as_i64().unwrap_or(0) / 1000), img));
+        rows.push((step, l["images_seen"].as_i64().unwrap_or(0) / 1000, img));
     }
     if rows.is_empty() {
         return Ok(None);
     }
+    let starts = run_stage_starts(run_dir)?;
     let label_w = 96u32;
     let pad = 6u32;
     let w = label_w + rows.iter().map(|r| r.2.width()).max().unwrap_or(0) + pad;
     let h: u32 = rows.iter().map(|r| r.2.height() + pad).sum::<u32>() + pad;
     let mut out = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
+    let (ink, grey) = (image::Rgb([20, 20, 20]), image::Rgb([90, 90, 90]));
     let mut y = pad;
-    for (step, images, img) in &rows {
-        draw_text(&mut out, 6, y as i64 + 2, step, image::Rgb([20, 20, 20]), 1);
-        draw_text(&mut out, 6, y as i64 + 14, images, image::Rgb([90, 90, 90]), 1);
+    let mut before: Option<i64> = None;
+    for (step, kimages, img) in &rows {
+        // Only a start the strip spans. The evaluation at step k scored the generator after
+        // steps 0..k, so a stage whose first step is s shows from the first row past s.
+        if let Some(from) = before.and_then(|b| starts.iter().map(|s| s.0).filter(|&s| b <= s && s < *step).last()) {
+            draw_dashes(&mut out, 0, (y - pad / 2) as i64, w as i64, false);
+            draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, 1);
+            draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, 1);
+        }
+        draw_text(&mut out, 6, y as i64 + 2, &format!("step {step}"), ink, 1);
+        draw_text(&mut out, 6, y as i64 + 14, &format!("{kimages}k images"), grey, 1);
         image::imageops::overlay(&mut out, img, label_w as i64, y as i64);
         y += img.height() + pad;
+        before = Some(*step);
     }
     let path = run_dir.join(FILMSTRIP);
     io::save_png(&path, &out)?;
