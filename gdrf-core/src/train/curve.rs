@@ -474,7 +474,7 @@ pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
     for (step, kimages, img) in &rows {
         // Only a start the strip spans. The evaluation at step k scored the generator after
         // steps 0..k, so a stage whose first step is s shows from the first row past s.
-        if let Some(from) = before.and_then(|b| starts.iter().map(|s| s.0).filter(|&s| b <= s && s < *step).last()) {
+        if let Some(from) = before.and_then(|b| starts.iter().map(|s| s.0).rev().find(|&s| b <= s && s < *step)) {
             draw_dashes(&mut out, 0, (y - pad / 2) as i64, w as i64, false);
             draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, 1);
             draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, 1);
