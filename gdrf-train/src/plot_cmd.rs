@@ -54,8 +54,7 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     }
     // Where a stage of the run's config starts, so a jump in a loss can be read against it
     // (none for a folder of metrics without its config).
-    let config = a.run_dir.join(run::CONFIG);
-    let starts = if config.exists() { curve::stage_starts(&TrainConfig::load(&config)?, &all) } else { Vec::new() };
+    let starts = curve::run_stage_starts(&a.run_dir, &all)?;
     let marks: Vec<f64> = starts.iter().map(|&(step, _)| step as f64).collect();
     let panels: Vec<Panel> = PANELS
         .iter()
@@ -82,9 +81,9 @@ pub fn plot(a: PlotArgs) -> Result<()> {
     // The learning curve, where the run scores itself (`[eval] interval`).
     // A curve whose evaluation frames are gone (a copy made without them) still has a
     // standing; only the filmstrip is left out.
-    if let Some(c) = curve::plot(&a.run_dir)? {
+    if let Some(c) = curve::plot(&a.run_dir, &starts)? {
         let lines = curve::read(&a.run_dir)?;
-        match curve::filmstrip(&a.run_dir)? {
+        match curve::filmstrip(&a.run_dir, &starts)? {
             Some(f) => println!("wrote {} and {} ({} evaluations)", c.display(), f.display(), lines.len()),
             None => println!(
                 "wrote {} ({} evaluations; no filmstrip: no evaluation kept its frame)",

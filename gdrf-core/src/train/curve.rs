@@ -60,8 +60,11 @@ pub fn record(run_dir: &Path, point: &CurvePoint, results: &[EvalResult]) -> Res
     }
     let line = serde_json::to_value(point)?;
     run::append_jsonl(&run_dir.join(CURVE), &line)?;
-    plot(run_dir)?;
-    filmstrip(run_dir)?;
+    // Both pictures mark the stage starts; the run's metrics are read once for them.
+    let metrics = if run_dir.join(run::METRICS).exists() { run::read_metrics(run_dir)? } else { Vec::new() };
+    let starts = run_stage_starts(run_dir, &metrics)?;
+    plot(run_dir, &starts)?;
+    filmstrip(run_dir, &starts)?;
     Ok(())
 }
 
@@ -263,22 +266,22 @@ pub fn stage_starts(cfg: &TrainConfig, metrics: &[serde_json::Value]) -> Vec<(i6
         .collect()
 }
 
-/// [`stage_starts`] of the run in `run_dir`, from its config.toml and metrics.jsonl; none
-/// for a folder without either (a copy of the curve alone).
-fn run_stage_starts(run_dir: &Path) -> Result<Vec<(i64, i64)>> {
+/// [`stage_starts`] of the run in `run_dir`: the stages of its config.toml against its
+/// `metrics`; none for a folder without a config (a copy of the curve alone).
+pub fn run_stage_starts(run_dir: &Path, metrics: &[serde_json::Value]) -> Result<Vec<(i64, i64)>> {
     let config = run_dir.join(run::CONFIG);
-    if !config.exists() || !run_dir.join(run::METRICS).exists() {
+    if !config.exists() {
         return Ok(Vec::new());
     }
-    Ok(stage_starts(&TrainConfig::load(&config)?, &run::read_metrics(run_dir)?))
+    Ok(stage_starts(&TrainConfig::load(&config)?, metrics))
 }
 
 /// Draws RUN_DIR/curve.png from curve.jsonl: the position of each calibrated score's seed
 /// mean, the worst position over seeds, the yaw error in degrees, how often swaps follow
 /// their code (structure, colour, beside the real ends) and the seconds per step, all
-/// against thousands of images seen, with a dashed line where a stage starts
-/// ([`stage_starts`]). Nothing is drawn for a run without a curve.
-pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
+/// against thousands of images seen, with a dashed line at each of the run's `starts`
+/// ([`run_stage_starts`]) that the curve spans. Nothing is drawn for a run without a curve.
+pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
     let lines = read(run_dir)?;
     if lines.is_empty() {
         return Ok(None);
@@ -292,7 +295,7 @@ pub fn plot(run_dir: &Path) -> Result<Option<PathBuf>> {
     let span = |l: Option<&serde_json::Value>| l.and_then(|l| l["images_seen"].as_i64()).unwrap_or(0);
     let (first, last) = (span(lines.first()), span(lines.last()));
     let starts: Vec<(i64, i64)> =
-        run_stage_starts(run_dir)?.into_iter().filter(|&(_, images)| (first..=last).contains(&images)).collect();
+        starts.iter().copied().filter(|&(_, images)| (first..=last).contains(&images)).collect();
     let marks: Vec<f64> = starts.iter().map(|&(_, images)| images as f64 / 1000.0).collect();
     let goal = |points: usize| Series {
         name: format!("goal {GOAL_POSITION}"),
@@ -443,10 +446,10 @@ fn frame(r: &EvalResult) -> Result<image::RgbImage> {
 }
 
 /// Stacks the frames of every evaluation on the curve into RUN_DIR/filmstrip.png, each
-/// row labelled with its step and images seen. Where a stage of the config starts between
-/// two rows ([`stage_starts`]), a dashed line runs through the gap above the first row it
-/// trained, and that row's label names the stage's first step.
-pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
+/// row labelled with its step and images seen. Where one of the run's `starts`
+/// ([`run_stage_starts`]) falls between two rows, a dashed line runs through the gap above
+/// the first row its stage trained, and that row's label names the stage's first step.
+pub fn filmstrip(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
     let mut rows = Vec::new();
     for l in read(run_dir)? {
         let step = l["step"].as_i64().unwrap_or(0);
@@ -462,7 +465,6 @@ pub fn filmstrip(run_dir: &Path) -> Result<Option<PathBuf>> {
     if rows.is_empty() {
         return Ok(None);
     }
-    let starts = run_stage_starts(run_dir)?;
     let label_w = 96u32;
     let pad = 6u32;
     let w = label_w + rows.iter().map(|r| r.2.width()).max().unwrap_or(0) + pad;
