@@ -282,15 +282,18 @@ fn parse_group_weight(s: &str) -> std::result::Result<(String, f64), String> {
 fn ship_cmd(a: ShipArgs) -> Result<()> {
     let shipped = gdrf_core::train::curve::ship(&a.run_dir, &a.out)?;
     let p = &shipped.point;
+    let whither = if shipped.unchanged {
+        format!(": already in {}, unchanged (its seeds.json holds this step's scores)", a.out.display())
+    } else {
+        format!(" -> {} (from {})", a.out.join("generator.safetensors").display(), shipped.from.display())
+    };
     println!(
-        "step {} of {} evaluations: {} the goal on every seed, lowest position {:.3} ({}) -> {} (from {})",
+        "step {} of {} evaluations: {} the goal on every seed, lowest position {:.3} ({}){whither}",
         p.step,
         shipped.evaluations,
         if p.meets_goal { "meets" } else { "short of" },
         p.lowest,
         p.score,
-        a.out.join("generator.safetensors").display(),
-        shipped.from.display()
     );
     let (curve, metrics) =
         (gdrf_core::train::curve::read(&a.run_dir)?, gdrf_core::train::run::read_metrics(&a.run_dir)?);

@@ -364,6 +364,36 @@ fn probe_learns_and_eval_is_calibrated() {
     assert_eq!(g, std::fs::read(shipped.join("generator.safetensors")).unwrap(), "generator from the checkpoint");
     let json = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p).unwrap()).unwrap();
     assert_eq!(json(&again.join("seeds.json")), json(&shipped.join("seeds.json")));
+    // Without the step's checkpoint either (a snapshot keeps only its newest), a folder that
+    // already holds that step's export is left as it is; one holding another step's scores,
+    // or nothing, is refused, naming what is missing.
+    let checkpoint = run.join(format!("checkpoints/step-{want:08}.safetensors"));
+    std::fs::rename(&checkpoint, tmp.path("kept-checkpoint")).unwrap();
+    let held = [g.clone(), std::fs::read(again.join("seeds.json")).unwrap()];
+    let said = gdrf_train(&["ship", run.to_str().unwrap(), "--out", again.to_str().unwrap()]);
+    assert!(said.contains(&format!("step {want} of 2 evaluations")) && said.contains("unchanged"), "{said}");
+    let now =
+        [std::fs::read(again.join("generator.safetensors")).unwrap(), std::fs::read(again.join("seeds.json")).unwrap()];
+    assert!(now == held, "an export already in place was rewritten");
+    let other = tmp.path("shipped-other-step");
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("generator.safetensors"), &g).unwrap();
+    let other_scores = &lines[if want == 2 { 1 } else { 0 }]["scores"];
+    std::fs::write(other.join("seeds.json"), serde_json::to_string_pretty(other_scores).unwrap()).unwrap();
+    for out in [&other, &tmp.path("shipped-nowhere")] {
+        let refused = Command::new(env!("CARGO_BIN_EXE_gdrf-train"))
+            .args(["ship", run.to_str().unwrap(), "--out", out.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&refused.stderr);
+        assert!(
+            !refused.status.success()
+                && err.contains(checkpoint.to_str().unwrap())
+                && err.contains(&format!("{} does not hold it already", out.display())),
+            "{err}"
+        );
+    }
+    std::fs::rename(tmp.path("kept-checkpoint"), &checkpoint).unwrap();
     for f in ["generator.safetensors", "seeds.json"] {
         std::fs::rename(tmp.path(&format!("kept-{f}")), evaluated.join(f)).unwrap();
     }

@@ -158,9 +158,11 @@ pub struct Shipped {
     pub point: RulePoint,
     /// Evaluations on the curve.
     pub evaluations: usize,
-    /// Where the generator came from: its evaluation folder's copy, or the run's checkpoint of
-    /// that step.
+    /// Where the generator came from: its evaluation folder's copy, the run's checkpoint of
+    /// that step, or `out` itself when it already held that step's export.
     pub from: PathBuf,
+    /// Whether `out` already held that step's export and nothing was written.
+    pub unchanged: bool,
 }
 
 /// Writes the generator [`best`] ranks first into `out` (created when missing) as
@@ -168,7 +170,9 @@ pub struct Shipped {
 /// evaluation folder; where that folder lost them (a run continued from a committed
 /// snapshot holds its checkpoints and curve, not its evaluation folders), the generator is
 /// the EMA generator of the run's checkpoint of that step, the file its run exported then,
-/// and the scores are the curve's.
+/// and the scores are the curve's. Where the run keeps neither (its checkpoint of that step
+/// was overwritten too) but `out` already holds a generator beside seeds.json equal to that
+/// step's curve scores, that step is shipped already and nothing is written.
 pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
     let lines = read(run_dir)?;
     let point = best(&lines).ok_or_else(|| {
@@ -177,6 +181,7 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
             run_dir.display()
         ))
     })?;
+    let line = lines.iter().find(|l| l["step"].as_i64() == Some(point.step)).expect("best is one of the lines");
     let dir = eval_dir(run_dir, point.step);
     let copy = |name: &str| -> Result<Option<()>> {
         let from = dir.join(name);
@@ -194,21 +199,35 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
     } else {
         let checkpoint = run_dir.join(run::CHECKPOINTS).join(run::checkpoint_name(point.step));
         if !checkpoint.is_file() {
+            let held = out.join(run::GENERATOR);
+            if held.is_file() && holds_scores(&out.join(SEEDS), &line["scores"]) {
+                return Ok(Shipped { point, evaluations: lines.len(), from: held, unchanged: true });
+            }
             return Err(Error::Invalid(format!(
-                "the curve ranks step {} first, but neither {} nor {} is there to ship it from",
+                "the curve ranks step {} first, but neither {} nor {} is there to ship it from, \
+                 and {} does not hold it already (a generator beside a {SEEDS} with that step's scores)",
                 point.step,
                 generator.display(),
-                checkpoint.display()
+                checkpoint.display(),
+                out.display()
             )));
         }
         crate::checkpoint::export_generator(&checkpoint, &out.join(run::GENERATOR))?;
         checkpoint
     };
     if copy(SEEDS)?.is_none() {
-        let line = lines.iter().find(|l| l["step"].as_i64() == Some(point.step)).expect("best is one of the lines");
         crate::paths::write_atomic(&out.join(SEEDS), serde_json::to_string_pretty(&line["scores"])?.as_bytes())?;
     }
-    Ok(Shipped { point, evaluations: lines.len(), from })
+    Ok(Shipped { point, evaluations: lines.len(), from, unchanged: false })
+}
+
+/// Whether the JSON file at `path` equals `scores`; false where it is missing or unreadable,
+/// since then it cannot say what was shipped.
+fn holds_scores(path: &Path, scores: &serde_json::Value) -> bool {
+    std::fs::read_to_string(path)
+        .ok()
+        .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
+        .is_some_and(|held| &held == scores)
 }
 
 /// Whether a curve line meets the goal (docs/training.md, "The campaign") on every seed
