@@ -393,6 +393,7 @@ fn probe_learns_and_eval_is_calibrated() {
             "{err}"
         );
     }
+    assert!(!tmp.path("shipped-nowhere").exists(), "a refused ship left its --out behind");
     std::fs::rename(tmp.path("kept-checkpoint"), &checkpoint).unwrap();
     for f in ["generator.safetensors", "seeds.json"] {
         std::fs::rename(tmp.path(&format!("kept-{f}")), evaluated.join(f)).unwrap();

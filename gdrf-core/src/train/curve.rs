@@ -192,26 +192,26 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
         crate::paths::write_atomic(&out.join(name), &bytes)?;
         Ok(Some(()))
     };
-    std::fs::create_dir_all(out).map_err(|err| Error::Io { path: out.to_path_buf(), err })?;
     let generator = dir.join(run::GENERATOR);
+    let checkpoint = run_dir.join(run::CHECKPOINTS).join(run::checkpoint_name(point.step));
+    if !generator.is_file() && !checkpoint.is_file() {
+        let held = out.join(run::GENERATOR);
+        if held.is_file() && holds_scores(&out.join(SEEDS), &line["scores"]) {
+            return Ok(Shipped { point, evaluations: lines.len(), from: held, unchanged: true });
+        }
+        return Err(Error::Invalid(format!(
+            "the curve ranks step {} first, but neither {} nor {} is there to ship it from, \
+             and {} does not hold it already (a generator beside a {SEEDS} with that step's scores)",
+            point.step,
+            generator.display(),
+            checkpoint.display(),
+            out.display()
+        )));
+    }
+    std::fs::create_dir_all(out).map_err(|err| Error::Io { path: out.to_path_buf(), err })?;
     let from = if copy(run::GENERATOR)?.is_some() {
         generator
     } else {
-        let checkpoint = run_dir.join(run::CHECKPOINTS).join(run::checkpoint_name(point.step));
-        if !checkpoint.is_file() {
-            let held = out.join(run::GENERATOR);
-            if held.is_file() && holds_scores(&out.join(SEEDS), &line["scores"]) {
-                return Ok(Shipped { point, evaluations: lines.len(), from: held, unchanged: true });
-            }
-            return Err(Error::Invalid(format!(
-                "the curve ranks step {} first, but neither {} nor {} is there to ship it from, \
-                 and {} does not hold it already (a generator beside a {SEEDS} with that step's scores)",
-                point.step,
-                generator.display(),
-                checkpoint.display(),
-                out.display()
-            )));
-        }
         crate::checkpoint::export_generator(&checkpoint, &out.join(run::GENERATOR))?;
         checkpoint
     };
