@@ -44,10 +44,11 @@ model=models/chairs-campaign/generator.safetensors
   --samples 12 --out out/interp --force
 # A mesh of seed 1 coloured by template-space position (correspondences across shapes).
 "$edit" mesh --checkpoint "$model" --source seed:1 --resolution 96 --colour template --out out/chair1.ply
-# A held-out chair of the dataset (never trained on) at its known pose, inverted into
+# A held-out chair of the dataset (never trained on), inverted as `gdrf-invert photo.png` does
+# (the shipped initialiser's w_s and pose estimate, then the default steps) into
 # out/invert/features.safetensors, then its appearance on seed 0's shape.
-"$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 \
-  --orbit 12 --out out/invert --force --quiet
+"$invert" data/chairs-64/images/000020.png --generator "$model" --orbit 12 \
+  --out out/invert --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
   --orbit 12 --resolution 64 --samples 12 --out out/invert-swap --force
 # Scored where it learned (32², 12 + 12 samples). 200 images keep this to a couple of

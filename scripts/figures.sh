@@ -35,9 +35,9 @@ place "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
   --num 500 --resolution 32 --samples 12 --out "$tmp/eval"
 place "$tmp/eval/report.png" docs/images/eval-chairs-campaign.png
-# A held-out chair of the dataset (never trained on) at its known pose.
-"$invert" data/chairs-64/images/000020.png --generator "$model" --pose 60.9,11.5 --steps 100 \
-  --orbit 12 --out "$tmp/invert" --force --quiet
+# A held-out chair of the dataset (never trained on), its pose estimated (the defaults).
+"$invert" data/chairs-64/images/000020.png --generator "$model" --orbit 12 \
+  --out "$tmp/invert" --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from "$tmp/invert/features.safetensors" \
   --orbit 12 --resolution 64 --samples 12 --out "$tmp/invert-swap" --force
 place "$tmp/invert/orbit.gif" docs/images/invert-orbit-chairs-campaign.gif

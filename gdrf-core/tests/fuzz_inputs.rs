@@ -442,12 +442,21 @@ fn hostile_safetensors_headers() {
 fn hostile_initialiser_headers() {
     let dir = TempDir::new("fuzz-init").unwrap();
     let path: PathBuf = dir.path("init.safetensors");
-    for (mapping_hidden, resolution) in
-        [(-1i64, 64i64), (1 << 40, 64), (i64::MAX, 64), (16, 0), (16, -5), (16, 1 << 40)]
-    {
+    for (mapping_hidden, resolution, appearance_dim) in [
+        (-1i64, 64i64, 0i64),
+        (1 << 40, 64, 0),
+        (i64::MAX, 64, 0),
+        (16, 0, 0),
+        (16, -5, 0),
+        (16, 1 << 40, 0),
+        (16, 64, -3),
+        (16, 64, i64::MAX),
+        (16, 64, 1 << 40),
+    ] {
         let json = serde_json::json!({
-            "format_version": 1, "generator": "g", "resolution": resolution, "mapping_hidden": mapping_hidden,
-            "step": 0, "config": gdrf_core::invert::init::InitConfig::default(),
+            "format_version": 2, "generator": "g", "backbone": "resnet34", "resolution": resolution,
+            "mapping_hidden": mapping_hidden, "appearance_dim": appearance_dim, "step": 0, "half": false,
+            "config": gdrf_core::invert::init::InitConfig::default(),
         })
         .to_string();
         let head = tch::Tensor::zeros([19, 512], (Kind::Float, Device::Cpu));
@@ -455,7 +464,9 @@ fn hostile_initialiser_headers() {
             .unwrap();
         std::fs::write(&path, b).unwrap();
         let e = match gdrf_core::invert::init::Initialiser::load(&path, "g", Device::Cpu) {
-            Ok(_) => panic!("mapping_hidden {mapping_hidden}, resolution {resolution}: loaded"),
+            Ok(_) => {
+                panic!("mapping_hidden {mapping_hidden}, resolution {resolution}, appearance {appearance_dim}: loaded")
+            }
             Err(e) => e.to_string(),
         };
         assert!(e.contains("init.safetensors"), "{e}");

@@ -481,7 +481,9 @@ fn every_shipped_config_loads_and_validates() {
 
 /// The campaign's two continuation configs hold the same keys but for the GPU's float32
 /// (the CPU's "auto": bfloat16 where the CPU has bfloat16 instructions) and batch 32, in
-/// both stages: step 0's, and from step 140 231 the same at a quarter of the learning rates.
+/// all three stages: step 0's, from step 140 231 the same at a quarter of the learning
+/// rates, and from step 205 046 the same at 64², with the discriminator's 64² path fading in
+/// over the release's 10 000 steps and the curve evaluated at 64².
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -490,7 +492,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8], vec![32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8], vec![32, 32, 32]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -499,6 +501,15 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     (quarter.from_step, quarter.g_lr, quarter.d_lr) = (0, None, None);
     assert_eq!(quarter, cpu.stages[0]);
     assert_eq!(cpu.alpha(140_231), 1.0);
+    // From step 205 046 only the resolution changes, and the fade-in starts there.
+    let mut at64 = cpu.stages[2].clone();
+    assert_eq!((at64.from_step, at64.resolution), (205_046, 64));
+    (at64.from_step, at64.resolution) = (cpu.stages[1].from_step, 32);
+    assert_eq!(at64, cpu.stages[1]);
+    assert_eq!(cpu.switch_step(205_045), None);
+    assert_eq!(cpu.switch_step(205_046), Some(205_046));
+    assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(210_046), cpu.alpha(215_046)], [1.0, 0.0, 0.5, 1.0]);
+    assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
         g.batch_size = c.batch_size;

@@ -8,6 +8,7 @@ use gdrf_core::config::CameraPreset;
 use gdrf_core::edit::view::Learned;
 use gdrf_core::edit::{Features, Source};
 use gdrf_core::field::generator::Generator;
+use gdrf_core::invert::choice::{self, InitChoice, RefinePose};
 use gdrf_core::{device, CameraConfig, GeneratorConfig};
 use std::path::PathBuf;
 use tch::{nn, Kind};
@@ -34,13 +35,14 @@ pub struct ModelArgs {
     camera: Option<CameraPreset>,
     /// Photo sources (.png/.jpg) are inverted on the fly (as gdrf-invert with its defaults,
     /// where the generator learned; gdrf-invert writes a reusable feature file): the
-    /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, else the
-    /// camera's mean pose).
+    /// photo's pose as PITCH,YAW in degrees (default: the initialiser's estimate, refined
+    /// with the features, else the camera's mean pose).
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
     photo_pose: Option<String>,
-    /// The initialiser for photo sources (gdrf-invert train-init).
-    #[arg(long, value_name = "FILE")]
-    photo_init: Option<PathBuf>,
+    /// The initialiser for photo sources (gdrf-invert train-init), or none (the mean code).
+    /// Default: initialiser.safetensors beside the generator, as gdrf-invert's --init.
+    #[arg(long, value_name = "FILE|none")]
+    photo_init: Option<InitChoice>,
     /// Optimisation steps for photo sources.
     #[arg(long, default_value_t = gdrf_core::invert::InvertConfig::default().steps)]
     photo_steps: usize,
@@ -100,7 +102,8 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     }
     model.photo = PhotoSettings {
         pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
-        init: m.photo_init.clone(),
+        init: m.photo_init.clone().unwrap_or_default(),
+        generator_path: checkpoint.clone(),
         cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..model.photo.cfg.clone() },
     };
     model.photo.cfg.validate()?;
@@ -111,7 +114,9 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
 #[derive(Default)]
 pub struct PhotoSettings {
     pub pose: Option<(f64, f64)>,
-    pub init: Option<PathBuf>,
+    pub init: InitChoice,
+    /// The generator's file, beside which its initialiser lies (None: a random generator).
+    pub generator_path: Option<PathBuf>,
     pub cfg: gdrf_core::invert::InvertConfig,
 }
 
@@ -119,24 +124,33 @@ pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     match source {
         Source::Image(p) => {
             let ph = &model.photo;
+            let chosen = match &ph.generator_path {
+                Some(g) => choice::open(&ph.init, g, &model.id, model.device)?,
+                None => choice::open(&InitChoice::None, std::path::Path::new("random"), &model.id, model.device)?,
+            };
             eprintln!(
-                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray)",
+                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray); {}",
                 p.display(),
                 ph.cfg.steps,
                 ph.cfg.resolution,
                 ph.cfg.samples,
-                ph.cfg.samples
+                ph.cfg.samples,
+                chosen.said
             );
-            gdrf_core::invert::features_of_photo(
+            let (f, from) = gdrf_core::invert::features_of_photo(
                 &model.generator,
                 &model.camera,
-                &model.id,
                 p,
                 ph.pose,
-                ph.init.as_deref(),
+                chosen.init.as_ref(),
+                RefinePose::Auto,
                 &ph.cfg,
             )
-            .with_context(|| format!("{flag} {}", p.display()))
+            .with_context(|| format!("{flag} {}", p.display()))?;
+            if let Some(pose) = f.pose {
+                eprintln!("{flag}: {}", choice::describe_pose(pose, from, RefinePose::Auto.resolve(from)));
+            }
+            Ok(f)
         }
         _ => Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string()),
     }

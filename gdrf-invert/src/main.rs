@@ -6,15 +6,19 @@ use gdrf_core::invert::command::{self, Options, TrainInitOptions};
 
 /// Invert a photo into GDRF shape and appearance features.
 ///
-/// Renders the generator at the photo's pose and optimises the shape feature w_s and the
-/// appearance modulation (γ_a, β_a) with Adam on MSE + a perceptual distance + priors that
-/// keep them near their start (paper §5). Writes into --out: features.safetensors (for
-/// `gdrf-edit --shape-from/--appearance-from`), input.png (the photo as compared),
-/// reconstruction.png, compare.png (photo | start | result), an orbit of novel views
-/// (orbit/frame-NNN.png and orbit.gif), loss.png and invert.json (settings, timings and
-/// the loss of every step).
+/// `gdrf-invert photo.png` starts from what the shipped initialiser reads in the photo
+/// (its shape feature w_s and its camera pose; paper §5.2), then renders the generator at
+/// that pose and optimises w_s, the appearance modulation (γ_a, β_a) and the pose with Adam
+/// on MSE + a perceptual distance + priors that keep them near their start (paper §5).
+/// `--pose` gives the pose instead, `--init none` starts from the mean code, and
+/// `--steps 2000` is the paper's schedule (see --steps). Writes into --out:
+/// features.safetensors (for `gdrf-edit --shape-from/--appearance-from`), input.png (the
+/// photo as compared), reconstruction.png, compare.png (photo | start | result), an orbit of
+/// novel views (orbit/frame-NNN.png and orbit.gif), loss.png and invert.json (settings,
+/// where the start and the pose came from, timings and the loss of every step).
 ///
-/// `gdrf-invert train-init` trains the initialiser (--init) for a generator.
+/// `gdrf-invert train-init` trains the initialiser for a generator; `gdrf-invert bench`
+/// measures inversion on held-out objects.
 #[derive(Parser)]
 #[command(version, about, long_about, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct Cli {
@@ -26,14 +30,20 @@ struct Cli {
 
 #[derive(clap::Subcommand)]
 enum Command {
-    /// Train the initialiser F (ResNet-34 from scratch, paper §5.2) on images the generator
-    /// renders: it predicts w_s and the camera pose of a photo. Writes --out atomically at
-    /// every validation and at the end (with its Adam state, so --resume continues it), and
-    /// --out with .json appended: the validation errors against the mean code's.
+    /// Train the initialiser F (paper §5.2: ResNet-34 from scratch, or a frozen
+    /// ImageNet-pretrained EfficientNet-Lite0 with a trained head) on images the generator
+    /// renders, and on a dataset's training-split images at their poses: it predicts w_s,
+    /// the camera pose (and optionally the appearance) of a photo. Writes --out atomically
+    /// at every validation and at the end (with its Adam state, so --resume continues it),
+    /// --out with .json (every validation: held-out errors against the mean code's) and .png
+    /// (the curve) appended, and with --ship the half-precision file gdrf-invert and
+    /// gdrf-edit use by default.
     TrainInit(TrainInitOptions),
-    /// Inversion accuracy against wall time on held-out objects of a procedural dataset:
-    /// input-view and novel-view PSNR/SSIM against the ground truth, for the mean-code
-    /// start, the initialiser and each speed option. Writes JSON, a plot and a table.
+    /// Inversion of held-out objects of a procedural dataset, scored at novel views against
+    /// their ground truth (PSNR, a perceptual distance, silhouette IoU, the probe's
+    /// structure agreement, pose error) and against time: the mean code, the initialiser,
+    /// gdrf-invert's defaults and the paper's 2 000 steps. Writes JSON, a table, a plot and
+    /// a figure.
     Bench(gdrf_core::bench::invert::Options),
 }
 

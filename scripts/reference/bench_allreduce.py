@@ -55,7 +55,7 @@ def rank_main(rank, a, port, q):
             medians.append(statistics.median(times))
     if rank == 0:
         q.put(medians)
-    dist.destroy_process_group()
+    dist_ref.finish(q)
 
 
 def main():

@@ -297,7 +297,7 @@ def rank_main(rank, a, port, q):
     out = measure(a, rank)
     if rank == 0:
         q.put(out)
-    dist.destroy_process_group()
+    dist_ref.finish(q)
 
 
 def main():

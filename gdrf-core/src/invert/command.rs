@@ -1,7 +1,8 @@
 //! The commands of gdrf-invert: `gdrf-invert PHOTO` (a photo into shape and appearance
 //! features, [`run`]) and `gdrf-invert train-init` (the initialiser, [`train_init`]),
 //! their flags and progress bars (the `cli` feature).
-use super::init::{self as init_stage, InitConfig, Initialiser};
+use super::choice::{self, describe_pose, InitChoice, RefinePose};
+use super::init::{self as init_stage, InitConfig};
 use super::photo::{load_photo, Fit};
 use super::{
     invert, load_effnet, loss_panels, parse_pose_degrees, render_orbit, render_views, start_for_photo, InvertConfig,
@@ -28,34 +29,72 @@ pub struct TrainInitOptions {
     /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     pub generator: Option<PathBuf>,
-    /// The initialiser file to write.
-    #[arg(long, short, default_value = "initialiser.safetensors")]
+    /// The training state to write (weights and optimiser, float32), with OUT.json (the
+    /// settings and every evaluation) and OUT.png (the curve).
+    #[arg(long, short, default_value = "initialiser-training.safetensors")]
     pub out: PathBuf,
+    /// Also write the file to ship: the weights in half precision, without the optimiser
+    /// (for the shipped generator: models/chairs-campaign/initialiser.safetensors, which
+    /// gdrf-invert and gdrf-edit then use by default).
+    #[arg(long, value_name = "FILE")]
+    pub ship: Option<PathBuf>,
     /// Continue the training saved in --out.
     #[arg(long)]
     pub resume: bool,
+    /// Keep the rendered tuples in FILE: read them from it when it holds the same generator's
+    /// renders at the same settings, else render them and write it (several trainings on
+    /// the same renders then render them once).
+    #[arg(long, value_name = "FILE")]
+    pub tuples: Option<PathBuf>,
+    /// The network that reads the photo: resnet34 (the paper's, trained from scratch) or
+    /// effnet-lite0 (ImageNet-pretrained and frozen, with a trained head).
+    #[arg(long, value_enum, default_value = "resnet34")]
+    pub backbone: init_stage::Backbone,
     /// Generated training tuples (the last --held-out are for validation).
     #[arg(long, default_value_t = InitConfig::default().count)]
     pub count: i64,
     #[arg(long, default_value_t = InitConfig::default().held_out)]
     pub held_out: i64,
-    /// Side of the generated images and of F's input.
-    #[arg(long, default_value_t = InitConfig::default().resolution)]
-    pub resolution: i64,
-    /// Samples per ray of the generated images.
-    #[arg(long, default_value_t = InitConfig::default().samples)]
-    pub samples: usize,
+    /// Side of the generated images and of F's input. Default: where the generator learned
+    /// (the resolution of its last training step, 32 for the shipped model), as gdrf-invert's.
+    #[arg(long)]
+    pub resolution: Option<i64>,
+    /// Samples per ray of the generated images (coarse; as many importance samples).
+    /// Default: those of the generator's last training step (12 for the shipped model).
+    #[arg(long)]
+    pub samples: Option<usize>,
     #[arg(long, default_value_t = InitConfig::default().steps)]
     pub steps: i64,
     #[arg(long, default_value_t = InitConfig::default().batch_size)]
     pub batch_size: i64,
+    /// Adam's learning rate, until the first of --lr-drops.
     #[arg(long, default_value_t = InitConfig::default().lr)]
     pub lr: f64,
+    /// STEP:LR,…: the learning rate from each STEP on (e.g. 4000:3e-4,6000:1e-4).
+    #[arg(long, value_delimiter = ',', value_parser = parse_lr_drop)]
+    pub lr_drops: Vec<(i64, f64)>,
     #[arg(long, default_value_t = InitConfig::default().pose_weight)]
     pub pose_weight: f64,
+    /// Weight of the raw appearance's error; above 0, F also predicts the appearance, which
+    /// then starts the optimisation instead of the mean appearance.
+    #[arg(long, default_value_t = InitConfig::default().appearance_weight)]
+    pub appearance_weight: f64,
     /// Weight of the paper's re-rendering term (renders every batch again with gradients).
     #[arg(long, default_value_t = InitConfig::default().image_weight)]
     pub image_weight: f64,
+    /// A procedural dataset whose training-split images, at their stored poses, teach F to
+    /// read real photos' poses (its held-out objects are never read).
+    #[arg(long, value_name = "DIR")]
+    pub real: Option<PathBuf>,
+    /// Weight of the pose error on the --real images.
+    #[arg(long, default_value_t = 1.0)]
+    pub real_weight: f64,
+    /// --real images in each batch.
+    #[arg(long, default_value_t = InitConfig::default().real_batch)]
+    pub real_batch: i64,
+    /// The last this many --real images are validation only.
+    #[arg(long, default_value_t = InitConfig::default().real_held_out)]
+    pub real_held_out: i64,
     #[arg(long, default_value_t = InitConfig::default().eval_interval)]
     pub eval_interval: i64,
     /// Seed of the initialiser's training: its rendered codes and poses, its initial weights
@@ -80,12 +119,16 @@ pub struct Options {
     /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
     #[arg(long, visible_alias = "checkpoint", value_name = "FILE")]
     pub generator: Option<PathBuf>,
-    /// The initialiser (from `gdrf-invert train-init`): w_s starts at its prediction, and
-    /// its pose is used when --pose is not given. Without it, w_s starts at the mean code's.
-    #[arg(long, value_name = "FILE")]
-    pub init: Option<PathBuf>,
+    /// The initialiser (from `gdrf-invert train-init`): w_s (and the appearance, where it
+    /// predicts one) starts at its prediction, and its estimate of the pose is used when
+    /// --pose is not given. Default: initialiser.safetensors beside the generator (shipped
+    /// with models/chairs-campaign); `none`: w_s starts at the mean code's (the paper's
+    /// ablation), as it does for a generator without one.
+    #[arg(long, value_name = "FILE|none")]
+    pub init: Option<InitChoice>,
     /// Camera pose of the photo as PITCH,YAW in degrees (pitch from the +y axis, as
-    /// gdrf-edit's --pitch/--yaw). Default: the camera's mean pose.
+    /// gdrf-edit's --pitch/--yaw); it overrides the initialiser's estimate. Default: the
+    /// initialiser's estimate, else the camera's mean pose.
     #[arg(long, value_name = "PITCH,YAW", allow_hyphen_values = true)]
     pub pose: Option<String>,
     /// Camera preset (chair, car, carla: field of view, ray range, mean pitch) instead of the
@@ -98,10 +141,15 @@ pub struct Options {
     /// How a non-square photo becomes square: crop (centre square) or pad (white borders).
     #[arg(long, default_value = "crop")]
     pub fit: Fit,
-    /// Optimisation steps at most (the paper: 2 000).
+    /// Optimisation steps at most. `--steps 2000` is the paper's setting: 2 000 Adam steps
+    /// of w_s, γ_a and β_a (and of the pose, when it was estimated) through all rays at lr
+    /// 0.01, the reference of `gdrf-invert bench`. The default is the same optimisation cut
+    /// short: it keeps ≥ 95 % of those 2 000 steps' novel-view gain (the novel views peak
+    /// near 50 steps, then the features overfit the photo's view), chosen on objects the
+    /// benchmark does not report (docs/inversion.md).
     #[arg(long, default_value_t = InvertConfig::default().steps)]
     pub steps: usize,
-    /// Adam's learning rate.
+    /// Adam's learning rate (the paper's 0.01).
     #[arg(long, default_value_t = InvertConfig::default().lr)]
     pub lr: f64,
     /// Side of the renders compared with the photo. Default: the resolution the generator
@@ -129,7 +177,8 @@ pub struct Options {
     pub prior_shape: f64,
     #[arg(long, default_value_t = InvertConfig::default().prior_appearance)]
     pub prior_appearance: f64,
-    /// Fraction of the rays whose gradients are taken each step (1 = all).
+    /// Fraction of the rays whose gradients are taken each step (1 = all, the paper's; 0.25
+    /// makes a step about 1.5× cheaper and gained less per second from the initialiser's start).
     #[arg(long, default_value_t = InvertConfig::default().ray_fraction)]
     pub ray_fraction: f64,
     /// Fraction of the steps, from the start, compared at half resolution.
@@ -143,10 +192,11 @@ pub struct Options {
     /// slower elsewhere. See `gdrf-invert bench`.
     #[arg(long)]
     pub bf16: bool,
-    /// Optimise the camera pose along with the features, starting from --pose (or the
-    /// initialiser's prediction, or the camera's mean pose).
-    #[arg(long)]
-    pub refine_pose: bool,
+    /// Optimise the camera pose along with the features: auto (when the initialiser
+    /// estimated it), on (`--refine-pose` alone: from --pose or the camera's mean pose too)
+    /// or off.
+    #[arg(long, value_enum, num_args = 0..=1, default_value = "auto", default_missing_value = "on")]
+    pub refine_pose: RefinePose,
     /// Adam's learning rate of the refined pose, in degrees per step.
     #[arg(long, default_value_t = InvertConfig::default().pose_lr.to_degrees())]
     pub pose_lr: f64,
@@ -225,7 +275,6 @@ pub fn run(a: &Options) -> Result<()> {
         patience: a.patience,
         seed: a.noise_seed,
         bf16: a.bf16,
-        refine_pose: a.refine_pose,
         pose_lr: a.pose_lr.to_radians(),
         grid_refresh: a.grid_refresh,
         grid_threshold: a.grid_threshold,
@@ -248,27 +297,16 @@ pub fn run(a: &Options) -> Result<()> {
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
     let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, resolution, dev)?;
-    let init = a
-        .init
-        .as_deref()
-        .map(|p| Initialiser::load(p, &id, dev).with_context(|| format!("loading --init {}", p.display())))
-        .transpose()?;
+    let chosen = choice::open(&a.init.clone().unwrap_or_default(), &gen_path, &id, dev)?;
     crate::io::output_dir(&a.out, a.force, "--out")?;
 
-    let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, init.as_ref())?;
+    let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, chosen.init.as_ref())?;
     let pose = start.pose;
-    if let Some(p) = predicted_pose {
-        eprintln!("the initialiser's pose: pitch {:.1}°, yaw {:.1}°", p.0.to_degrees(), p.1.to_degrees());
-    }
-    if pose_from == PoseFrom::CameraMean {
-        eprintln!(
-            "no --pose: using the camera's mean pose (pitch {:.1}°, yaw {:.1}°)",
-            pose.0.to_degrees(),
-            pose.1.to_degrees()
-        );
-    }
-    if init.is_none() {
-        eprintln!("no --init: w_s starts at the mean code's (gdrf-invert train-init trains an initialiser)");
+    let cfg = InvertConfig { refine_pose: a.refine_pose.resolve(pose_from), ..cfg };
+    eprintln!("{}", chosen.said);
+    eprintln!("{}", describe_pose(pose, pose_from, false));
+    if let (Some(p), PoseFrom::Given) = (predicted_pose, pose_from) {
+        eprintln!("(the initialiser's estimate: pitch {:.1}°, yaw {:.1}°)", p.0.to_degrees(), p.1.to_degrees());
     }
     let effnet;
     let lpips;
@@ -322,13 +360,7 @@ pub fn run(a: &Options) -> Result<()> {
     let start_pose = pose;
     let pose = inv.features.pose.unwrap_or(pose);
     if cfg.refine_pose {
-        eprintln!(
-            "refined pose: pitch {:.1}°, yaw {:.1}° (from {:.1}°, {:.1}°)",
-            pose.0.to_degrees(),
-            pose.1.to_degrees(),
-            start_pose.0.to_degrees(),
-            start_pose.1.to_degrees()
-        );
+        eprintln!("{}", describe_pose(pose, pose_from, true));
     }
 
     // Outputs.
@@ -363,7 +395,9 @@ pub fn run(a: &Options) -> Result<()> {
     save_png(&a.out.join("loss.png"), &draw_panels(&loss_panels(&inv.history), 2, 360, 240))?;
     let report = serde_json::json!({
         "photo": photo_path.display().to_string(),
-        "init": a.init.as_ref().map(|p| p.display().to_string()),
+        "init": chosen.path.as_deref().map(crate::paths::shown),
+        "pose_from": pose_from.name(),
+        "predicted_pose_deg": predicted_pose.map(|p| [p.0.to_degrees(), p.1.to_degrees()]),
         "generator": gen_path.display().to_string(),
         "generator_id": id,
         "camera": cam,
@@ -391,20 +425,38 @@ pub fn run(a: &Options) -> Result<()> {
     Ok(())
 }
 
-/// Trains the initialiser and writes `--out` and `--out`.json.
+/// One `STEP:LR` of `--lr-drops`.
+fn parse_lr_drop(s: &str) -> std::result::Result<(i64, f64), String> {
+    let (step, lr) = s.split_once(':').ok_or_else(|| format!("'{s}': expected STEP:LR, e.g. 4000:3e-4"))?;
+    let step = step.trim().parse::<i64>().map_err(|e| format!("'{s}': the step: {e}"))?;
+    let lr = lr.trim().parse::<f64>().map_err(|e| format!("'{s}': the learning rate: {e}"))?;
+    Ok((step, lr))
+}
+
+/// Trains the initialiser and writes `--out`, `--out`.json, `--out`.png and `--ship`.
 pub fn train_init(a: &TrainInitOptions) -> Result<()> {
     let threads = device::init_threads();
     let dev = device::select(&a.device)?;
+    let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
+    let m = load_generator(&gen_path, dev, Kind::Float)
+        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
+    let learned = InvertConfig::where_learned(&m.header);
     let cfg = InitConfig {
-        resolution: a.resolution,
-        samples: a.samples,
+        backbone: a.backbone,
+        resolution: a.resolution.unwrap_or(learned.resolution),
+        samples: a.samples.unwrap_or(learned.samples),
         count: a.count,
         held_out: a.held_out,
         batch_size: a.batch_size,
         steps: a.steps,
         lr: a.lr,
+        lr_drops: a.lr_drops.clone(),
         pose_weight: a.pose_weight,
+        appearance_weight: a.appearance_weight,
         image_weight: a.image_weight,
+        real_weight: if a.real.is_some() { a.real_weight } else { 0.0 },
+        real_batch: a.real_batch,
+        real_held_out: a.real_held_out,
         eval_interval: a.eval_interval,
         seed: a.seed,
         ..Default::default()
@@ -419,70 +471,210 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
             a.out.display()
         )));
     }
-    let gen_path = a.generator.clone().unwrap_or_else(crate::paths::shipped_generator);
-    let m = load_generator(&gen_path, dev, Kind::Float)
-        .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);
+    let lite0 = match cfg.backbone {
+        init_stage::Backbone::EffnetLite0 if !a.resume => {
+            Some(init_stage::lite0_weights(&crate::pretrained::effnet::EfficientNetLite0::default_path())?)
+        }
+        _ => None,
+    };
+    let style = ProgressStyle::with_template("{msg:12} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
+        .expect("valid template");
+    let bar = |len: i64, msg: &'static str| {
+        let b = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(len as u64) };
+        b.set_style(style.clone());
+        b.set_message(msg);
+        b
+    };
+    let reals = match &a.real {
+        Some(dir) => {
+            let b = bar(0, "real images");
+            let r = init_stage::load_real_images(dir, cfg.resolution, dev, &mut |d, n| {
+                b.set_length(n as u64);
+                b.set_position(d as u64)
+            })
+            .with_context(|| format!("loading --real {}", dir.display()))?;
+            b.finish_and_clear();
+            Some(r)
+        }
+        None => None,
+    };
     eprintln!(
-        "training a ResNet-34 initialiser for {} on {} generated {}² images ({} held out), {} steps of {}; device {dev:?}, {threads} threads",
+        "training an initialiser ({}) for {} on {} generated {}² images ({} held out){}, {} steps of {}; device {dev:?}, {threads} threads",
+        cfg.backbone.name(),
         gen_path.display(),
         cfg.count,
         cfg.resolution,
         cfg.held_out,
+        match (&a.real, &reals) {
+            (Some(dir), Some(r)) => format!(
+                " and {} training-split images of {} at their poses ({} held out)",
+                r.images.size()[0],
+                dir.display(),
+                cfg.real_held_out
+            ),
+            _ => String::new(),
+        },
         cfg.steps,
         cfg.batch_size
     );
-    let style = ProgressStyle::with_template("{msg:12} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
-        .expect("valid template");
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.count as u64) };
-    bar.set_style(style.clone());
-    bar.set_message("rendering");
+    let b = bar(cfg.count, "rendering");
     let t0 = std::time::Instant::now();
-    let tuples = init_stage::generate(g, &cam, &cfg, &mut |d| bar.set_position(d as u64))?;
-    bar.finish_and_clear();
-    let generate_s = t0.elapsed().as_secs_f64();
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
-    bar.set_style(style);
-    bar.set_message("training");
-    let t1 = std::time::Instant::now();
-    let (_, evals) = init_stage::train(g, &cam, &id, &tuples, &cfg, &a.out, a.resume, &mut |step, ev| {
-        bar.set_position(step as u64);
-        if let Some(e) = ev {
-            // Above the bar, and in logs too (a hidden bar's println writes nothing).
-            bar.suspend(|| {
-                eprintln!(
-                    "step {}: held-out w_s MSE {:.4} (mean code {:.4}), pitch error {:.1}°, yaw error {:.1}°",
-                    e.step, e.w_mse, e.mean_code_w_mse, e.pitch_error_deg, e.yaw_error_deg
-                )
-            });
+    let cached = match &a.tuples {
+        Some(p) if p.is_file() => init_stage::Tuples::load(p, &id, &cfg, dev)?,
+        _ => None,
+    };
+    let tuples = match cached {
+        Some(t) => {
+            eprintln!("the rendered tuples from {}", a.tuples.as_ref().expect("cached").display());
+            t
         }
-    })?;
-    bar.finish_and_clear();
+        None => {
+            let t = init_stage::generate(g, &cam, &cfg, &mut |d| b.set_position(d as u64))?;
+            if let Some(p) = &a.tuples {
+                t.save(p, &id, &cfg)?;
+            }
+            t
+        }
+    };
+    b.finish_and_clear();
+    let generate_s = t0.elapsed().as_secs_f64();
+    // Only a frozen backbone takes its features before the first step.
+    let features = match cfg.backbone {
+        init_stage::Backbone::EffnetLite0 => {
+            bar(cfg.count + reals.as_ref().map_or(0, |r| r.images.size()[0]), "features")
+        }
+        init_stage::Backbone::Resnet34 => ProgressBar::hidden(),
+    };
+    let training = bar(cfg.steps, "training");
+    let t1 = std::time::Instant::now();
+    let (mut f, evals) =
+        init_stage::train(g, &cam, &id, &tuples, reals.as_ref(), lite0, &cfg, &a.out, a.resume, &mut |p| match p {
+            init_stage::TrainProgress::Features(n) => features.inc(n as u64),
+            init_stage::TrainProgress::Step(step, ev) => {
+                if !features.is_finished() {
+                    features.finish_and_clear();
+                }
+                training.set_position(step as u64);
+                if let Some(e) = ev {
+                    // Above the bar, and in logs too (a hidden bar's println writes nothing).
+                    training.suspend(|| eprintln!("{}", describe_eval(e)));
+                }
+            }
+        })?;
+    training.finish_and_clear();
     let train_s = t1.elapsed().as_secs_f64();
-    let last = evals.last().expect("at least one evaluation");
+    let last = evals.last().expect("at least one evaluation").clone();
+    // The curve: the training so far, a resumed run's earlier evaluations included.
+    let json_path = PathBuf::from(format!("{}.json", a.out.display()));
+    let mut history: Vec<serde_json::Value> = if a.resume {
+        std::fs::read_to_string(&json_path)
+            .ok()
+            .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
+            .and_then(|v| v["evaluations"].as_array().cloned())
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|e| e["step"].as_i64().is_some_and(|s| s < evals[0].step))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    history.extend(evals.iter().map(|e| serde_json::to_value(e).expect("plain fields")));
     let report = serde_json::json!({
-        "generator": gen_path.display().to_string(),
+        "generator": crate::paths::shown(&gen_path),
         "generator_id": id,
+        "backbone": cfg.backbone.name(),
+        "real_images": a.real.as_ref().map(|d| d.display().to_string()),
         "config": cfg,
         "generate_seconds": generate_s,
         "train_seconds": train_s,
         "device": format!("{dev:?}"),
         "threads": threads,
-        "evaluations": evals,
+        "evaluations": history,
     });
-    let json_path = PathBuf::from(format!("{}.json", a.out.display()));
     crate::paths::write_atomic(&json_path, json(&report)?.as_bytes())?;
+    let png_path = PathBuf::from(format!("{}.png", a.out.display()));
+    save_png(&png_path, &draw_panels(&init_curve_panels(&history), 2, 420, 280))?;
+    if let Some(ship) = &a.ship {
+        // Checked on held-out inputs: 16 rendered tuples, and 16 real images where trained on some.
+        let held = tuples.images.narrow(0, cfg.count - cfg.held_out, cfg.held_out.min(16));
+        let images = match &reals {
+            Some(r) if cfg.real_held_out > 0 => {
+                let n = r.images.size()[0];
+                Tensor::cat(&[held, r.images.narrow(0, n - cfg.real_held_out, cfg.real_held_out.min(16))], 0)
+            }
+            _ => held,
+        };
+        init_stage::ship(&mut f, ship, &id, last.step, &cfg, &images)?;
+        eprintln!(
+            "shipped {} (half precision, no optimiser state) and its check {}",
+            ship.display(),
+            init_stage::check_path(ship).display()
+        );
+    }
     println!(
-        "held-out w_s MSE {:.4} against the mean code's {:.4}; pose error pitch {:.1}°, yaw {:.1}°; rendering {generate_s:.0} s, training {train_s:.0} s; wrote {} and {}",
-        last.w_mse,
-        last.mean_code_w_mse,
-        last.pitch_error_deg,
-        last.yaw_error_deg,
+        "{}; rendering {generate_s:.0} s, training {train_s:.0} s; wrote {}, {} and {}",
+        describe_eval(&last),
         a.out.display(),
-        json_path.display()
+        json_path.display(),
+        png_path.display()
     );
     Ok(())
+}
+
+/// One evaluation of the initialiser on a line.
+fn describe_eval(e: &init_stage::InitEval) -> String {
+    let mut s = format!(
+        "step {} ({} images): held-out w_s MSE {:.4} (mean code {:.4}), pose error pitch {:.1}°, yaw {:.1}° (median {:.1}°)",
+        e.step,
+        e.images_seen,
+        e.w_mse,
+        e.mean_code_w_mse,
+        e.pitch_error_deg,
+        e.yaw_error_deg,
+        e.median_yaw_error_deg
+    );
+    if let Some(a) = e.appearance_mse {
+        s += &format!(", appearance MSE {a:.4} (mean {:.4})", e.mean_appearance_mse);
+    }
+    if let (Some(p), Some(y), Some(m)) = (e.real_pitch_error_deg, e.real_yaw_error_deg, e.real_median_yaw_error_deg) {
+        s += &format!("; real images: pitch {p:.1}°, yaw {y:.1}° (median {m:.1}°)");
+    }
+    s
+}
+
+/// The initialiser's curve against images seen: the held-out w_s error beside the mean
+/// code's, and the pose errors on generated and real images.
+fn init_curve_panels(evals: &[serde_json::Value]) -> Vec<crate::plot::Panel> {
+    use crate::plot::{Panel, Series};
+    let series = |name: &str, key: &str| Series {
+        name: name.into(),
+        points: evals.iter().filter_map(|e| Some((e["images_seen"].as_f64()?, e[key].as_f64()?))).collect(),
+    };
+    vec![
+        Panel {
+            title: "held-out w_s MSE vs images seen".into(),
+            series: vec![series("initialiser", "w_mse"), series("mean code", "mean_code_w_mse")],
+            log_y: false,
+            marks: vec![],
+        },
+        Panel {
+            title: "pose error (deg) vs images seen".into(),
+            series: vec![
+                series("generated yaw", "yaw_error_deg"),
+                series("generated pitch", "pitch_error_deg"),
+                series("real yaw", "real_yaw_error_deg"),
+                series("real median yaw", "real_median_yaw_error_deg"),
+                series("real pitch", "real_pitch_error_deg"),
+            ]
+            .into_iter()
+            .filter(|s| !s.points.is_empty())
+            .collect(),
+            log_y: false,
+            marks: vec![],
+        },
+    ]
 }
 
 /// `report` as the pretty JSON of invert.json and the initialiser's .json.

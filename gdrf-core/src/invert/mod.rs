@@ -20,6 +20,7 @@
 //! - `patience > 0`: stop once the loss has not improved by `min_improvement` (relative)
 //!   for that many steps.
 /// The commands of gdrf-invert (their flags and progress bars need the `cli` feature).
+pub mod choice;
 #[cfg(feature = "cli")]
 pub mod command;
 mod config;
@@ -508,8 +509,9 @@ pub struct PhotoStart {
 }
 
 /// The start of an inversion of `photo: (1, 3, R, R)`: from the initialiser's prediction of
-/// w_s when `init` is given (with the mean appearance), else the mean code's features; at
-/// `pose` when given, else the initialiser's, else the camera's mean pose.
+/// w_s when `init` is given (with its appearance when it predicts one, else the mean
+/// appearance), else the mean code's features; at `pose` when given, else the
+/// initialiser's, else the camera's mean pose.
 pub fn start_for_photo(
     g: &Generator,
     camera: &CameraConfig,
@@ -520,33 +522,40 @@ pub fn start_for_photo(
     let predicted = init.map(|f| f.predict(photo)).transpose()?;
     let (pose, from) = match (pose, &predicted) {
         (Some(p), _) => (p, PoseFrom::Given),
-        (None, Some((_, p))) => (*p, PoseFrom::Initialiser),
+        (None, Some(p)) => (p.pose, PoseFrom::Initialiser),
         (None, None) => ((camera.v_mean, camera.h_mean), PoseFrom::CameraMean),
     };
-    let predicted_pose = predicted.as_ref().map(|p| p.1);
+    let predicted_pose = predicted.as_ref().map(|p| p.pose);
     let start = match predicted {
-        Some((w, _)) => Start::with_mean_appearance(g, w, pose, TRUNCATION_MEAN_CODES),
+        Some(p) => {
+            let mut s = Start::with_mean_appearance(g, p.w_s, pose, TRUNCATION_MEAN_CODES);
+            if let Some(a) = p.appearance_raw {
+                s.appearance_raw = a;
+            }
+            s
+        }
         None => Start::mean(g, pose, TRUNCATION_MEAN_CODES),
     };
     Ok(PhotoStart { start, pose_from: from, predicted_pose })
 }
 
 /// A photo file as an editing source: loaded (centre-cropped, on white), inverted with `cfg`
-/// from [`start_for_photo`]'s start, with the EfficientNet-Lite0 perceptual distance when
-/// `cfg.perceptual_weight` is not 0. Returns the features.
+/// from [`start_for_photo`]'s start with `init`, the pose refined as `refine` says, with the
+/// EfficientNet-Lite0 perceptual distance when `cfg.perceptual_weight` is not 0. Returns the
+/// features and where the pose came from.
 pub fn features_of_photo(
     g: &Generator,
     camera: &CameraConfig,
-    generator_id: &str,
     path: &std::path::Path,
     pose: Option<(f64, f64)>,
-    init: Option<&std::path::Path>,
+    init: Option<&init::Initialiser>,
+    refine: choice::RefinePose,
     cfg: &InvertConfig,
-) -> Result<Features> {
+) -> Result<(Features, PoseFrom)> {
     let (_, device) = g.kind_device();
     let photo = photo::load_photo(path, None, photo::Fit::Crop, cfg.resolution, device)?;
-    let init = init.map(|p| init::Initialiser::load(p, generator_id, device)).transpose()?;
-    let start = start_for_photo(g, camera, &photo, pose, init.as_ref())?.start;
+    let started = start_for_photo(g, camera, &photo, pose, init)?;
+    let cfg = InvertConfig { refine_pose: refine.resolve(started.pose_from), ..cfg.clone() };
     let net;
     let perceptual = if cfg.perceptual_weight > 0.0 {
         net = load_effnet(device)?;
@@ -554,7 +563,8 @@ pub fn features_of_photo(
     } else {
         None
     };
-    Ok(invert(g, camera, &photo, &start, cfg, perceptual.as_ref(), &mut |_| {})?.features)
+    let f = invert(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), &mut |_| {})?.features;
+    Ok((f, started.pose_from))
 }
 
 /// The features `f` on a turntable of `n` views from `pose` (radians), `(n, 3, res, res)`

@@ -133,11 +133,16 @@ pub struct RulePoint {
 /// does) the one whose lowest seed-mean position over [`RULE_SCORES`] is highest, ties to
 /// the later step. The second part was fixed before the campaign's first evaluation; the
 /// first was added at step 102 067, after an evaluation first met the goal and the
-/// positions alone ranked below it one whose swaps fell short of it. `None` for a curve
-/// without a counted score.
+/// positions alone ranked below it one whose swaps fell short of it. Only the evaluations
+/// at the curve's highest resolution rank (fixed at step 205 046, before the 64² stage's
+/// first evaluation): a model is shipped for the images it draws at its newest size, and
+/// scores at another size are not comparable. `None` for a curve without a counted score.
 pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
+    let resolution = |l: &serde_json::Value| l["scores"]["resolution"].as_i64();
+    let highest = lines.iter().filter_map(resolution).max();
     lines
         .iter()
+        .filter(|l| resolution(l) == highest)
         .filter_map(|l| {
             let step = l["step"].as_i64()?;
             let (score, lowest) = l["scores"]["scores"]
@@ -597,6 +602,25 @@ mod tests {
         let later = scored(105000, [Some(0.93), Some(0.92)], [25.0, 25.0], [0.8, 0.8], [0.8, 0.8]);
         assert_eq!(best(&[lines[1].clone(), later]).unwrap().step, 105000);
         assert_eq!(best(&[lines[0].clone(), lines[2].clone()]).unwrap().step, 100000);
+    }
+
+    #[test]
+    fn only_the_evaluations_at_the_highest_resolution_rank() {
+        let at = |resolution: i64, mut l: serde_json::Value| {
+            l["scores"]["resolution"] = json!(resolution);
+            l
+        };
+        let lines = [
+            at(32, scored(95000, [Some(0.89), Some(0.9)], [24.0, 26.0], [0.92, 0.88], [0.77, 0.77])),
+            at(64, scored(210000, [Some(0.6), Some(0.7)], [30.0, 30.0], [0.7, 0.7], [0.7, 0.7])),
+            at(64, scored(215000, [Some(0.5), Some(0.5)], [30.0, 30.0], [0.7, 0.7], [0.7, 0.7])),
+        ];
+        // Step 95 000 meets the goal at 32², but only the 64² evaluations rank.
+        assert_eq!(
+            best(&lines).unwrap(),
+            RulePoint { step: 210000, meets_goal: false, lowest: (0.6 + 0.7) / 2.0, score: "frechet distance".into() }
+        );
+        assert_eq!(best(&lines[..1]).unwrap().step, 95000);
     }
 
     #[test]
