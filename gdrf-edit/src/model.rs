@@ -10,7 +10,7 @@ use gdrf_core::edit::{Features, Source};
 use gdrf_core::field::generator::Generator;
 use gdrf_core::invert::choice::{self, InitChoice, RefinePose};
 use gdrf_core::{device, CameraConfig, GeneratorConfig};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use tch::{nn, Kind};
 
 #[derive(Args)]
@@ -124,9 +124,14 @@ pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     match source {
         Source::Image(p) => {
             let ph = &model.photo;
-            let chosen = match &ph.generator_path {
-                Some(g) => choice::open(&ph.init, g, &model.id, model.device)?,
-                None => choice::open(&InitChoice::None, std::path::Path::new("random"), &model.id, model.device)?,
+            let chosen = match (&ph.generator_path, &ph.init) {
+                (Some(g), init) => choice::open(init, "--photo-init", g, &model.id, model.device)?,
+                // A random generator has no initialiser beside it; a file given with
+                // --photo-init is still opened (and refused by the generator's identity).
+                (None, InitChoice::Beside) => {
+                    choice::open(&InitChoice::None, "--photo-init", Path::new("random"), &model.id, model.device)?
+                }
+                (None, init) => choice::open(init, "--photo-init", Path::new("random"), &model.id, model.device)?,
             };
             eprintln!(
                 "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray); {}",

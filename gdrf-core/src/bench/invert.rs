@@ -382,7 +382,7 @@ pub fn run(a: &Options) -> Result<Report> {
     let m = load_generator(&gen_path, dev, Kind::Float).with_context(|| format!("loading {}", gen_path.display()))?;
     let (g, cam) = (&m.generator, m.header.camera.clone().unwrap_or_default());
     let id = generator_id(&m.vs, g);
-    let chosen = choice::open(&a.init.clone().unwrap_or_default(), &gen_path, &id, dev)?;
+    let chosen = choice::open(&a.init.clone().unwrap_or_default(), "--init", &gen_path, &id, dev)?;
     let learned = InvertConfig::where_learned(&m.header);
     let defaults = InvertConfig {
         resolution: a.resolution.unwrap_or(learned.resolution),

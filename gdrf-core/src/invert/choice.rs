@@ -47,19 +47,26 @@ pub fn beside(generator_path: &Path) -> PathBuf {
 }
 
 /// Opens the initialiser `choice` names for the generator at `generator_path` (identity
-/// `generator_id`). A file made for another generator is an error naming both, whether
-/// it was given or found beside the generator; a generator without one beside it starts
-/// from the mean code, and the line says so.
-pub fn open(choice: &InitChoice, generator_path: &Path, generator_id: &str, device: Device) -> Result<Chosen> {
-    let load = |p: &Path, flag: &str| {
-        Initialiser::load(p, generator_id, device).with_context(|| format!("loading {flag} {}", p.display()))
+/// `generator_id`), given with `flag` (`--init`, `--photo-init`). A file made for another
+/// generator is an error naming both, whether it was given or found beside the generator;
+/// a generator without one beside it starts from the mean code, and the line says so.
+pub fn open(
+    choice: &InitChoice,
+    flag: &str,
+    generator_path: &Path,
+    generator_id: &str,
+    device: Device,
+) -> Result<Chosen> {
+    let load = |p: &Path, what: &str| {
+        Initialiser::load(p, generator_id, device)
+            .with_context(|| format!("loading {what} {} ({flag} none starts from the mean code)", p.display()))
     };
     Ok(match choice {
         InitChoice::None => {
-            Chosen { init: None, path: None, said: "--init none: w_s starts at the mean code's".into() }
+            Chosen { init: None, path: None, said: format!("{flag} none: w_s starts at the mean code's") }
         }
         InitChoice::File(p) => Chosen {
-            init: Some(load(p, "--init")?),
+            init: Some(load(p, flag)?),
             path: Some(p.clone()),
             said: format!("w_s starts at the prediction of the initialiser {}", crate::paths::shown(p)),
         },

@@ -297,7 +297,7 @@ pub fn run(a: &Options) -> Result<()> {
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
     let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, resolution, dev)?;
-    let chosen = choice::open(&a.init.clone().unwrap_or_default(), &gen_path, &id, dev)?;
+    let chosen = choice::open(&a.init.clone().unwrap_or_default(), "--init", &gen_path, &id, dev)?;
     crate::io::output_dir(&a.out, a.force, "--out")?;
 
     let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, chosen.init.as_ref())?;

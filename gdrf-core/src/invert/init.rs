@@ -629,7 +629,7 @@ impl Initialiser {
         if let Some(id) = generator_id {
             if h.generator != id {
                 return Err(bad(format!(
-                    "it was trained for generator {}, not for this one ({id}); train one for it with gdrf-invert train-init, or pass --init none",
+                    "it was trained for generator {}, not for this one ({id}); train one for it with gdrf-invert train-init",
                     h.generator
                 )));
             }
@@ -792,14 +792,10 @@ impl Inputs {
             return Ok(Inputs::Images(images.shallow_clone()));
         }
         let l = init.lite0.as_ref().expect("checked");
-        let n = images.size()[0];
         let mut out = Vec::new();
-        let mut i = 0;
-        while i < n {
-            let b = 64.min(n - i);
-            out.push(l.features(&images.narrow(0, i, b))?);
-            i += b;
-            progress(b);
+        for chunk in images.split(64, 0) {
+            out.push(l.features(&chunk)?);
+            progress(chunk.size()[0]);
         }
         Ok(Inputs::Features(Tensor::cat(&out, 0)))
     }
@@ -1194,8 +1190,9 @@ mod tests {
             let err = Initialiser::load(&shipped, "another", Device::Cpu).err().map(|e| e.to_string());
             assert!(err.as_deref().unwrap_or("").contains("another") && err.as_deref().unwrap().contains("gen"));
             // Within 5 % of the largest w_s component, and 2° of pose, of the float32 network.
-            // (For Lite0 the feature statistics of this test's 8 images are degenerate, so the
-            // rounding's effect is checked on the shipped file instead: gdrf-core/tests/invert.rs.)
+            // Not for Lite0: the feature statistics of this test's 8 images are degenerate, so
+            // rounding moves its outputs arbitrarily here. (The shipped ResNet-34's rounding is
+            // held to the float32 network in gdrf-core/tests/invert.rs; no Lite0 file ships.)
             if backbone == Backbone::EffnetLite0 {
                 continue;
             }
