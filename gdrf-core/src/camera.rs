@@ -218,7 +218,7 @@ pub struct Rays {
     /// `(B, R, M)`: 1 where bin j of M equal bins of the camera's ray range may hold
     /// density, 0 where it is empty (an occupancy grid's promise). Samples are placed in
     /// occupied bins only, and empty bins count as empty space when integrating (see
-    /// [`crate::render::samplers::OccupiedLength`]). Such rays also end on one sample at
+    /// [`crate::render::sampler::OccupiedLength`]). Such rays also end on one sample at
     /// the camera's far end.
     pub occupied: Option<Tensor>,
 }

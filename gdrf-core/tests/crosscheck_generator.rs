@@ -10,7 +10,7 @@ use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::field::generator::{FieldOptions, Truncation};
 use gdrf_core::nn::mapping::seeded_randn;
-use gdrf_core::render::samplers::{importance_depths, stratified_depths};
+use gdrf_core::render::sampler::{importance_depths, stratified_depths};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
 use gdrf_core::{CameraConfig, Film, Latents, RenderConfig};
 use std::collections::HashMap;

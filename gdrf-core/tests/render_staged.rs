@@ -44,16 +44,16 @@ fn staged_shading_agrees_with_the_reference() {
     let reference = tch::no_grad(|| r.render_rays(&lat, &c.rays, &noise)).unwrap();
 
     // Every sample shaded: the reference image (same points, same weights).
-    let all = r.shape_side(&lat.shape, &c.rays, &noise, 0.0).unwrap();
+    let all = r.staged().shape_side(&lat.shape, &c.rays, &noise, 0.0).unwrap();
     assert_eq!(all.kept, all.evaluated);
-    assert_close("all samples: pixel", &r.shade(&all, &lat.appearance).unwrap(), &reference.pixel, 1e-6, 1e-5);
+    assert_close("all samples: pixel", &r.staged().shade(&all, &lat.appearance).unwrap(), &reference.pixel, 1e-6, 1e-5);
     assert_close("opacity", &all.opacity, &reference.opacity, 1e-6, 1e-5);
     assert_close("depth", &all.depth, &reference.depth, 1e-6, 1e-5);
 
     // Density-first: samples of weight ≤ 1e-3 skipped; each pixel moves by at most the
     // skipped weight, (S samples · 1e-3) · (1 + 2ε).
     let t = 1e-3;
-    let side = r.shape_side(&lat.shape, &c.rays, &noise, t).unwrap();
+    let side = r.staged().shape_side(&lat.shape, &c.rays, &noise, t).unwrap();
     println!("density-first at {t}: {} of {} samples shaded", side.kept, side.evaluated);
     // On this model about 40 % of the samples weigh less than 1e-3.
     assert!(
@@ -63,14 +63,20 @@ fn staged_shading_agrees_with_the_reference() {
         side.evaluated
     );
     let bound = 24.0 * t * (1.0 + 2.0 * rc.widen_eps);
-    assert_close("density-first pixel", &r.shade(&side, &lat.appearance).unwrap(), &reference.pixel, bound, 0.0);
+    assert_close(
+        "density-first pixel",
+        &r.staged().shade(&side, &lat.appearance).unwrap(),
+        &reference.pixel,
+        bound,
+        0.0,
+    );
 
     // The shape side of images (0, 1) re-shaded with the appearances of codes (2, 0): the
     // render of those swapped latents.
     let swapped = latents(&c, &[0, 1], &[2, 0]);
     let want = tch::no_grad(|| r.render_rays(&swapped, &c.rays, &noise)).unwrap();
-    assert_close("re-shaded pixel", &r.shade(&all, &swapped.appearance).unwrap(), &want.pixel, 1e-6, 1e-5);
-    let e = r.shade(&all, &latents(&c, &[0], &[0]).appearance).unwrap_err().to_string();
+    assert_close("re-shaded pixel", &r.staged().shade(&all, &swapped.appearance).unwrap(), &want.pixel, 1e-6, 1e-5);
+    let e = r.staged().shade(&all, &latents(&c, &[0], &[0]).appearance).unwrap_err().to_string();
     assert!(e.contains("1 appearances for a shape side of 2 images"), "{e}");
 }
 

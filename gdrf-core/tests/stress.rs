@@ -12,7 +12,7 @@ use gdrf_core::loss::{gan, LossConfig, Schedule};
 use gdrf_core::nn::film::FilmLayer;
 use gdrf_core::nn::siren::SineLayer;
 use gdrf_core::nn::WeightInit;
-use gdrf_core::render::samplers::{importance_depths, sample_pdf, OccupiedLength};
+use gdrf_core::render::sampler::{importance_depths, sample_pdf, OccupiedLength};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
 use gdrf_core::train::{discriminator_pass, generator_pass, FakeBatch};
 use gdrf_core::{CameraConfig, GeneratorConfig, Latents, RenderConfig};

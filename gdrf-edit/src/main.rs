@@ -210,13 +210,14 @@ fn render(mut a: RenderArgs) -> Result<()> {
         let lat = latents.narrow(i, 1);
         // The grid depends on the shape alone: one per seed, shared by its views.
         let grid = match grid_cfg {
-            Some(cfg) => Some(renderer.occupancy_grid(&lat.shape, cfg).context("--grid")?),
+            Some(cfg) => Some(renderer.grids().occupancy_grid(&lat.shape, cfg).context("--grid")?),
             None => None,
         };
         let grids: Vec<&OccupancyGrid> = grid.iter().collect();
         for &v in &views {
             let poses = Poses::from_angles(&[v], Kind::Float, dev);
-            let (img, _) = renderer.render_image_in_grids(&lat, &poses, resolution, &Noise::default(), &grids)?;
+            let (img, _) =
+                renderer.grids().render_image_in_grids(&lat, &poses, resolution, &Noise::default(), &grids)?;
             rgb.push(img.rgb);
             depth.push(img.depth);
             bar.inc(1);

@@ -102,7 +102,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     // One grid for the shape, shared by its views (density never depends on the appearance).
     let grid_cfg = a.grid.resolve((views.len() as i64 * pixels) as f64 * rc.samples_per_ray() as f64)?;
     let grid = match grid_cfg {
-        Some(cfg) => Some(renderer.occupancy_grid(&lat.shape, cfg).context("--grid")?),
+        Some(cfg) => Some(renderer.grids().occupancy_grid(&lat.shape, cfg).context("--grid")?),
         None => None,
     };
     let grids: Vec<_> = grid.iter().collect();
@@ -110,7 +110,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     for (k, &pose) in views.iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
         let noise = a.view.noise(k, pixels, model.device);
-        let (img, _) = renderer.render_image_in_grids(&lat, &poses, a.view.res(), &noise, &grids)?;
+        let (img, _) = renderer.grids().render_image_in_grids(&lat, &poses, a.view.res(), &noise, &grids)?;
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;
@@ -215,10 +215,11 @@ impl MatrixView<'_> {
         let mut cells = Vec::new();
         for shape in self.features {
             let shape_film = latents(g, shape, shape, self.trunc).shape;
-            let sides = renderer.shape_sides(&shape_film, &rays, self.noise, renderer.config.shade_min_weight)?;
+            let sides =
+                renderer.staged().shape_sides(&shape_film, &rays, self.noise, renderer.config.shade_min_weight)?;
             for app in self.features {
                 let Latents { appearance, .. } = latents(g, shape, app, self.trunc);
-                let pixel = renderer.shade_chunks(&sides, &appearance)?;
+                let pixel = renderer.staged().shade_chunks(&sides, &appearance)?;
                 cells.push(pixel.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0);
             }
         }
@@ -298,7 +299,7 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
     // Only the appearance moves: one shape side, re-shaded per frame.
     let sides = if what == Interpolate::Appearance {
         let rays = Rays::from_poses(&poses, a.view.res(), model.camera.fov_deg);
-        Some(renderer.shape_sides(&latents(g, &from, &from, trunc.as_ref()).shape, &rays, &noise, 0.0)?)
+        Some(renderer.staged().shape_sides(&latents(g, &from, &from, trunc.as_ref()).shape, &rays, &noise, 0.0)?)
     } else {
         None
     };
@@ -310,7 +311,9 @@ pub fn interp(mut a: InterpArgs) -> Result<()> {
         let rgb = match &sides {
             Some(sides) => {
                 let res = a.view.res();
-                renderer.shade_chunks(sides, &lat.appearance)?.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0
+                renderer.staged().shade_chunks(sides, &lat.appearance)?.permute([0, 2, 1]).reshape([1, 3, res, res])
+                    * 2.0
+                    - 1.0
             }
             None => renderer.render_image(&lat, &poses, a.view.res(), &noise)?.rgb,
         };

@@ -359,26 +359,28 @@ fn run_scene<F: RadianceField>(
 ) -> Result<(Vec<Row>, Tensor)> {
     let (_, dev) = scene.fields[0].kind_device();
     let r = res * res;
-    let render_all =
-        |rc: &RenderConfig, opts: FieldOptions, grids: &[Option<OccupancyGrid>]| -> Result<(Image, (i64, i64))> {
-            let mut parts = Vec::new();
-            let (mut dq, mut cq) = (0, 0);
-            for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
-                let mut renderer = Renderer::new(*field, camera, rc)?;
-                renderer.field = opts;
-                let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
-                for &pose in poses {
-                    let pose = Poses::from_angles(&[pose], Kind::Float, dev);
-                    let (img, (d, c)) =
-                        renderer.render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
-                    parts.push(img);
-                    dq += d;
-                    cq += c;
-                }
+    let render_all = |rc: &RenderConfig,
+                      opts: FieldOptions,
+                      grids: &[Option<OccupancyGrid>]|
+     -> Result<(Image, (i64, i64))> {
+        let mut parts = Vec::new();
+        let (mut dq, mut cq) = (0, 0);
+        for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
+            let mut renderer = Renderer::new(*field, camera, rc)?;
+            renderer.field = opts;
+            let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
+            for &pose in poses {
+                let pose = Poses::from_angles(&[pose], Kind::Float, dev);
+                let (img, (d, c)) =
+                    renderer.grids().render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
+                parts.push(img);
+                dq += d;
+                cq += c;
             }
-            let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
-            Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
-        };
+        }
+        let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+        Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
+    };
     let n_images = (scene.fields.len() * poses.len()) as f64;
     eprintln!("{} {res}²: dense reference (N={} + {}) …", scene.name, a.reference_steps, a.reference_steps);
     let dense_rc = RenderConfig { num_steps: a.reference_steps, jitter: false, ..Default::default() };
@@ -414,7 +416,7 @@ fn run_scene<F: RadianceField>(
                     .map(|(f, l)| {
                         let mut r = Renderer::new(*f, camera, &rc)?;
                         r.field = opts;
-                        r.occupancy_grid(&l.shape, cfg).map(Some)
+                        r.grids().occupancy_grid(&l.shape, cfg).map(Some)
                     })
                     .collect::<Result<Vec<_>>>()?;
                 let ms = 1000.0 * t.elapsed().as_secs_f64() / scene.fields.len() as f64;

@@ -168,7 +168,7 @@ pub fn render_at_pose(
 /// [`render_at_pose`] at one pose given as tensors (gradients flow into the pose when it
 /// requires them), sampled inside `grid` when one is given. A grid that samples only its
 /// occupied cells ([`GridConfig::cells_only`]) renders as gdrf-edit's grids do
-/// ([`render_in_cells`]); otherwise each ray is sampled between its first and last
+/// ([`crate::render::Grids::render_in_cells`]); otherwise each ray is sampled between its first and last
 /// occupied cell, and a ray that meets none has every sample at the camera's far end, so
 /// only that point, where the release's infinite last interval is, counts.
 pub fn render_at_poses(
@@ -182,7 +182,7 @@ pub fn render_at_poses(
 ) -> Result<Tensor> {
     let mut rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
     let pixels = match grid {
-        Some(grid) if grid.cfg.cells_only => render_in_cells(renderer, latents, &rays, grid, noise, subset)?,
+        Some(grid) if grid.cfg.cells_only => renderer.grids().render_in_cells(latents, &rays, grid, noise, subset)?,
         _ => {
             if let Some(grid) = grid {
                 let end = renderer.camera.ray_end;
@@ -207,49 +207,6 @@ pub fn render_at_poses(
     };
     // (1, R, 3) in [0, 1] → (1, 3, res, res) in [−1, 1].
     Ok(pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0)
-}
-
-/// The pixels `(1, R, 3)` of one image's `rays` rendered only in `grid`'s occupied cells,
-/// with gradients through the rays of `subset` (all when `None`): a ray that meets an
-/// occupied cell is sampled only in the occupied cells along it, empty stretches counting
-/// as empty space; the others are shaded from their far-end sample alone. A ray's samples
-/// depend only on its own noise, so rendering the rays in groups (meets the grid or not,
-/// with gradients or not) gives the image one render would, and no ray twice.
-fn render_in_cells(
-    renderer: &Renderer,
-    latents: &Latents,
-    rays: &Rays,
-    grid: &OccupancyGrid,
-    noise: &Noise,
-    subset: Option<&Tensor>,
-) -> Result<Tensor> {
-    let r = rays.num_rays();
-    let (occupied, hit) = tch::no_grad(|| grid.bins(rays, renderer.camera.ray_start, renderer.camera.ray_end));
-    let hit = hit.view([r]);
-    let traced = match subset {
-        None => hit.ones_like(),
-        Some(idx) => hit.zeros_like().index_fill(0, idx, 1),
-    };
-    let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
-    let mut pixel = Tensor::zeros([1, r, 3], (kind, device));
-    for (meets, with_grad) in [(true, true), (true, false), (false, true), (false, false)] {
-        let idx = hit.eq(meets as i64).logical_and(&traced.eq(with_grad as i64)).nonzero().view([-1]);
-        if idx.size()[0] == 0 {
-            continue;
-        }
-        let render = || -> Result<Tensor> {
-            let sub = rays.select_rays(&idx);
-            Ok(if meets {
-                let sub = sub.with_occupied(occupied.index_select(1, &idx));
-                renderer.render_rays(latents, &sub, &noise.select_rays(&idx))?.pixel
-            } else {
-                renderer.render_far_end(latents, &sub).pixel
-            })
-        };
-        let part = if with_grad { render()? } else { tch::no_grad(render)? };
-        pixel = pixel.index_copy(1, &idx, &part.to_kind(kind));
-    }
-    Ok(pixel)
 }
 
 /// Adam with torch's defaults (betas 0.9, 0.999, eps 1e-8) over the inversion's tensors.
@@ -404,7 +361,7 @@ impl<'a> Inverter<'a> {
                 cells_only: cfg.grid_cells,
                 ..Default::default()
             };
-            self.grid = Some((step, renderer.occupancy_grid(&shape, gc)?));
+            self.grid = Some((step, renderer.grids().occupancy_grid(&shape, gc)?));
         }
         let grid = self.grid.as_ref().map(|(_, grid)| grid);
         let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;

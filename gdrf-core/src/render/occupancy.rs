@@ -1,15 +1,11 @@
 //! A per-instance occupancy grid, built from the shape side alone (Φ and T_σ at the cell
-//! centres, no colour), and rendering inside it: rays that meet no occupied cell cost one
-//! sample (the far end, see below), the others are sampled only over the interval between
-//! their first and last occupied cell, or (`cells_only`) only in the occupied cells along
-//! them. The grid depends on the shape modulation only, so a
-//! grid is built once per shape and reused for every view and every appearance.
-use super::composite::composite;
-use super::rays::{Image, Noise, RayColours};
-use super::renderer::Renderer;
-use crate::camera::{Poses, Rays};
+//! centres, no colour): which cells of the cube may hold density, and, along rays, the
+//! interval between their first and last occupied cell or their occupied bins (what the
+//! samplers of `in_grid` place samples in). The grid depends on the shape modulation
+//! only, so a grid is built once per shape and reused for every view and every appearance.
+use crate::camera::Rays;
 use crate::config::CameraConfig;
-use crate::field::generator::{FieldOptions, Latents};
+use crate::field::generator::FieldOptions;
 use crate::field::RadianceField;
 use crate::nn::film::Film;
 use crate::{Error, Result};
@@ -277,101 +273,5 @@ impl OccupancyGrid {
         let occ = edges.narrow(2, 0, m).logical_or(&edges.narrow(2, 1, m));
         let hit = occ.any_dim(2, false);
         (occ.to_kind(Kind::Float), hit)
-    }
-}
-
-impl<F: RadianceField> Renderer<'_, F> {
-    /// [`Renderer::render_image`], each image inside its shape's occupancy grid when `grids`
-    /// holds one per image (empty: no grid). Also returns the density and colour queries
-    /// spent.
-    pub fn render_image_in_grids(
-        &self,
-        latents: &Latents,
-        poses: &Poses,
-        res: i64,
-        noise: &Noise,
-        grids: &[&OccupancyGrid],
-    ) -> Result<(Image, (i64, i64))> {
-        if !grids.is_empty() && grids.len() as i64 != poses.len() {
-            return Err(Error::Shape(format!("{} occupancy grids for {} images", grids.len(), poses.len())));
-        }
-        // One image at a time: each has its own grid.
-        self.render_image_with(latents, poses, res, noise, 1, |i, lat, rays, noise| match grids.get(i) {
-            Some(grid) => self.render_in_grid(lat, rays, grid, noise),
-            None => self.render_bundle(lat, rays, noise),
-        })
-    }
-
-    /// The occupancy grid of one shape (row `i` of `shape`) for this renderer's camera.
-    pub fn occupancy_grid(&self, shape: &Film, cfg: GridConfig) -> Result<OccupancyGrid> {
-        OccupancyGrid::build(
-            self.generator,
-            shape,
-            self.field,
-            self.camera,
-            cfg,
-            self.config.chunk_points_on(shape.gamma.device()),
-        )
-    }
-
-    /// Renders rays `(1, R, 3)` of one image inside its shape's `grid` (no gradients):
-    /// rays that meet no occupied cell are shaded from their far-end sample alone (the
-    /// reference's last interval is infinite, so that sample decides an empty ray's
-    /// colour), the others are sampled within their occupied interval
-    /// ([`Rays::bounds`]) by the density-first or the full path.
-    fn render_in_grid(
-        &self,
-        latents: &Latents,
-        rays: &Rays,
-        grid: &OccupancyGrid,
-        noise: &Noise,
-    ) -> Result<RayColours> {
-        if latents.batch_size() != 1 || rays.dirs.size()[0] != 1 {
-            return Err(Error::Shape("render_in_grid renders one image at a time".into()));
-        }
-        tch::no_grad(|| {
-            let r = rays.num_rays();
-            let (start, end) = (self.camera.ray_start, self.camera.ray_end);
-            let (support, hit) =
-                if grid.cfg.cells_only { grid.bins(rays, start, end) } else { grid.clip(rays, start, end) };
-            let hit = hit.view([r]);
-            let on = hit.nonzero().view([-1]);
-            let off = hit.logical_not().nonzero().view([-1]);
-            let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
-            let mut pixel = Tensor::zeros([1, r, 3], (kind, device));
-            let mut depth = Tensor::zeros([1, r, 1], (kind, device));
-            let mut opacity = Tensor::zeros([1, r, 1], (kind, device));
-            let (mut density_evals, mut colour_evals) = (0, 0);
-            let mut put = |idx: &Tensor, c: RayColours| {
-                pixel = pixel.index_copy(1, idx, &c.pixel.to_kind(kind));
-                depth = depth.index_copy(1, idx, &c.depth.to_kind(kind));
-                opacity = opacity.index_copy(1, idx, &c.opacity.to_kind(kind));
-                density_evals += c.density_evals;
-                colour_evals += c.colour_evals;
-            };
-            if on.size()[0] > 0 {
-                let sub = rays.select_rays(&on);
-                let support = support.index_select(1, &on);
-                let sub = if grid.cfg.cells_only { sub.with_occupied(support) } else { sub.with_bounds(support) };
-                put(&on, self.render_bundle(latents, &sub, &noise.select_rays(&on))?);
-            }
-            if off.size()[0] > 0 {
-                put(&off, self.render_far_end(latents, &rays.select_rays(&off)));
-            }
-            Ok(RayColours { pixel, depth, opacity, density_evals, colour_evals })
-        })
-    }
-
-    /// Rays `(1, K, 3)` shaded from one sample at the camera's far end, integrated with
-    /// the final interval as the reference integrates its last sample (gradients flow
-    /// where autograd is enabled).
-    pub(crate) fn render_far_end(&self, latents: &Latents, rays: &Rays) -> RayColours {
-        let k = rays.num_rays();
-        let x = &rays.origins + &rays.dirs * self.camera.ray_end;
-        let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);
-        let rgb = self.generator.radiance(&feature, &self.sample_dirs(&rays.dirs, 1), &latents.appearance);
-        let z = Tensor::full([1, k, 1, 1], self.camera.ray_end, (rays.dirs.kind(), rays.dirs.device()));
-        let c = composite(&rgb.view([1, k, 1, 3]), &sigma.view([1, k, 1, 1]), &z, &self.composite_options());
-        RayColours { pixel: c.pixel, depth: c.depth, opacity: c.opacity, density_evals: k, colour_evals: k }
     }
 }

@@ -1,7 +1,7 @@
 //! What a render takes and gives, per ray: the noise that places its samples, the shape
 //! side's density samples, the rendered rays (pixels, depths, weights), their colours and
 //! costs, and images.
-use super::samplers::gather_samples;
+use super::sampler::gather_samples;
 use tch::Tensor;
 
 /// Uniform noise the renderer would otherwise draw itself. Given explicitly, renders are

@@ -6,8 +6,10 @@
 //! the staged shape-side / re-shade path (`staged.rs`) and occupancy grids
 //! (`occupancy.rs`).
 use super::composite::{composite, CompositeOptions};
+use super::in_grid::Grids;
 use super::rays::{assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
-use super::samplers::gather_samples;
+use super::sampler::{gather_samples, SamplerSpec, ShapeQuery};
+use super::staged::Staged;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::{FieldOptions, Generator, Latents};
@@ -30,6 +32,28 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         camera.validate()?;
         config.validate()?;
         Ok(Self { generator, camera, config, field: FieldOptions::default() })
+    }
+
+    /// The samples of rays `(B, R, 3)` and their density (the shape side), placed by the
+    /// samplers the config and the rays call for ([`SamplerSpec::sample`]). Missing noise
+    /// is drawn from libtorch's generator.
+    pub fn sample(&self, shape: &Film, rays: &Rays, noise: &Noise) -> Result<RaySamples> {
+        SamplerSpec::new(self.config, self.camera).sample(&self.shape_query(shape), rays, noise)
+    }
+
+    /// The staged shape-side / re-shade path of this renderer.
+    pub fn staged(&self) -> Staged<'_, 'a, F> {
+        Staged { renderer: self }
+    }
+
+    /// Occupancy grids of this renderer's field and camera, and rendering inside them.
+    pub fn grids(&self) -> Grids<'_, 'a, F> {
+        Grids { renderer: self }
+    }
+
+    /// What samplers ask of the field: its shape side under `shape`.
+    pub fn shape_query<'s>(&'s self, shape: &'s Film) -> ShapeQuery<'s> {
+        ShapeQuery { field: self.generator, shape, options: self.field }
     }
 
     /// The config's integration, with the last sample painted white where the field does
@@ -159,7 +183,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     /// with the queries spent.
     pub fn render_bundle(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
         if self.config.skips_samples() {
-            return self.render_staged_chunked(latents, rays, noise);
+            return self.staged().render_chunked(latents, rays, noise);
         }
         let out = tch::no_grad(|| self.render_rays_chunked(latents, rays, noise))?;
         let evals = out.z.size()[0] * out.z.size()[1] * out.z.size()[2];
@@ -196,15 +220,15 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
         }
         let s = z.size()[2];
         let order = Tensor::arange(s, (Kind::Int64, z.device())).view([1, 1, s]);
+        let query = self.shape_query(&latents.shape);
         let parts = self.in_chunks(rays, s, |start, len| {
             let (rays, z) = (rays.narrow(start, len), z.narrow(1, start, len));
-            let x = (rays.origins.unsqueeze(2) + rays.dirs.unsqueeze(2) * z.unsqueeze(-1)).reshape([b, len * s, 3]);
-            let (sigma, feature) = self.generator.sigma_feature(&x, &latents.shape, self.field);
+            let (sigma, feature) = query.at(&rays, &z);
             // The samples as given: already sorted, so their order is the identity.
             let samples = RaySamples {
                 z: z.shallow_clone(),
-                sigma: sigma.view([b, len, s, 1]),
-                features: vec![feature.view([b, len, s, -1])],
+                sigma,
+                features: vec![feature],
                 order: order.expand([b, len, s], false),
                 skipped: None,
                 evaluated: b * len * s,
