@@ -583,6 +583,48 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// The header written today names the template; a file written before the key existed
+    /// loads as SIREN with the same parameters; a template no program knows is an error
+    /// naming the key.
+    #[test]
+    fn the_header_records_the_template_and_older_files_load_as_siren() {
+        use crate::config::TemplateKind;
+        let dir = std::env::temp_dir().join(format!("gdrf-ckpt-template-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("g.safetensors");
+        let vs = nn::VarStore::new(Device::Cpu);
+        let _g = Generator::new(&vs.root(), &GeneratorConfig::tiny()).unwrap();
+        save_generator(&path, &vs, &Header::generator(GeneratorConfig::tiny(), None)).unwrap();
+        let (json, tensors) = load_tensors_with(&path, HEADER_KEY).unwrap();
+        let header: serde_json::Value = serde_json::from_str(&json).unwrap();
+        assert_eq!(header["generator"]["template"], "siren", "{json}");
+        // The same file as written before the key existed, and with a template no one knows.
+        let rewrite = |template: Option<serde_json::Value>| {
+            let mut h = header.clone();
+            let g = h["generator"].as_object_mut().unwrap();
+            match template {
+                Some(t) => g.insert("template".into(), t),
+                None => g.remove("template"),
+            };
+            let named: Vec<(String, Tensor)> = tensors.iter().map(|(n, t)| (n.clone(), t.shallow_clone())).collect();
+            write_atomic(&path, &tensors_to_bytes(&named, HEADER_KEY, &h.to_string()).unwrap()).unwrap();
+        };
+        rewrite(None);
+        let old = load_generator(&path, Device::Cpu, Kind::Float).unwrap();
+        assert_eq!(old.header.generator.template, TemplateKind::Siren);
+        assert_eq!(old.header.generator, GeneratorConfig::tiny());
+        let a = vs.variables();
+        for (name, t) in old.vs.variables() {
+            assert!(t.equal(&a[&name]), "{name}");
+        }
+        for (value, shown) in [(serde_json::json!("triplane"), "triplane"), (serde_json::json!(3), "3")] {
+            rewrite(Some(value));
+            let e = load_generator(&path, Device::Cpu, Kind::Float).err().expect("refused").to_string();
+            assert!(e.contains("generator.template") && e.contains(shown), "{e}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     #[test]
     fn non_finite_tensors_are_never_written_nor_loaded() {
         let dir = std::env::temp_dir().join(format!("gdrf-ckpt-nan-{}", std::process::id()));

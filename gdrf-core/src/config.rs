@@ -3,7 +3,7 @@
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
-/// Sizes of the generator's networks.
+/// Sizes of the generator's networks, and which template they have.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GeneratorConfig {
@@ -46,6 +46,33 @@ pub struct GeneratorConfig {
     /// same on colours drawn from the RGB cube's eight corners, where fog shows.
     #[serde(skip_serializing_if = "Background::is_learned")]
     pub background: Background,
+    /// The template T (`field::template`), recorded in every header written since the key
+    /// exists. Headers written before have none and load as `siren`, the only template
+    /// there was.
+    #[serde(deserialize_with = "TemplateKind::deserialize_keyed")]
+    pub template: TemplateKind,
+}
+
+/// Which template a generator has ([`GeneratorConfig::template`]); each variant is one
+/// implementation of `field::template::Template`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TemplateKind {
+    /// The release's: a SIREN density trunk of `trunk_layers` and a FiLM-SIREN colour
+    /// branch of `color_layers`, all of width `hidden_dim`.
+    #[default]
+    Siren,
+}
+
+impl TemplateKind {
+    /// Reads the `template` key; a name no template has (or a value that is no name) is an
+    /// error naming the key, which serde's own message for an enum leaves out.
+    fn deserialize_keyed<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        use serde::de::{value::StrDeserializer, Error as _};
+        let keyed = |e: &dyn std::fmt::Display| D::Error::custom(format!("generator.template: {e}"));
+        let name = String::deserialize(d).map_err(|e| keyed(&e))?;
+        Self::deserialize(StrDeserializer::<serde::de::value::Error>::new(&name)).map_err(|e| keyed(&e))
+    }
 }
 
 /// What colours the background ([`GeneratorConfig::background`]).
@@ -103,6 +130,7 @@ impl Default for GeneratorConfig {
             deform_head_frequency: 0.0,
             deform_head_bias: HeadBias::Uniform,
             background: Background::Learned,
+            template: TemplateKind::Siren,
         }
     }
 }
@@ -127,19 +155,20 @@ impl GeneratorConfig {
             0 => 0,
             l => linear(first, h).saturating_add(linear(h, h).saturating_mul(n(l) - 1)),
         };
-        // The colour layers: H → H, except the last, which takes the view direction too.
-        let colour = match self.colour_layers {
-            0 => 0,
-            l => linear(h, h).saturating_mul(n(l) - 1).saturating_add(linear(h + 3, h)),
+        // The template's share (`field::template::build` builds what it counts).
+        let template = match self.template {
+            TemplateKind::Siren => {
+                // The colour layers: H → H, except the last, which takes the view direction too.
+                let colour = match self.colour_layers {
+                    0 => 0,
+                    l => linear(h, h).saturating_mul(n(l) - 1).saturating_add(linear(h + 3, h)),
+                };
+                [stack(self.trunk_layers, 3), linear(h, 1), colour, linear(h, 3)]
+                    .into_iter()
+                    .fold(0, u128::saturating_add)
+            }
         };
-        let parts = [
-            stack(self.trunk_layers, 3),
-            linear(h, 1),
-            colour,
-            linear(h, 3),
-            stack(self.deform_layers, 3),
-            linear(h, 4),
-        ];
+        let parts = [template, stack(self.deform_layers, 3), linear(h, 4)];
         let modulations = [self.colour_layers, self.deform_layers].map(|l| n(l).saturating_mul(2).saturating_mul(h));
         parts.into_iter().chain(modulations.into_iter().flat_map(mapping)).fold(0, u128::saturating_add)
     }
@@ -465,6 +494,18 @@ mod tests {
         GeneratorConfig::default().validate().unwrap();
         RenderConfig::default().validate().unwrap();
         assert!(CameraConfig { fov_deg: 180.0, ..CameraConfig::chair() }.validate().is_err());
+    }
+
+    /// `[generator] template` is optional (SIREN), and a name no template has is an error
+    /// naming the key.
+    #[test]
+    fn template_keys_default_to_siren_and_unknown_ones_are_named() {
+        assert_eq!(toml::from_str::<GeneratorConfig>("").unwrap().template, TemplateKind::Siren);
+        assert_eq!(toml::from_str::<GeneratorConfig>("template = \"siren\"").unwrap().template, TemplateKind::Siren);
+        for bad in ["template = \"grid\"", "template = 1"] {
+            let e = toml::from_str::<GeneratorConfig>(bad).unwrap_err().to_string();
+            assert!(e.contains("generator.template"), "{bad}: {e}");
+        }
     }
 
     #[test]

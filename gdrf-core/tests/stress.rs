@@ -231,7 +231,7 @@ fn regularisers_at_the_exact_initial_state() {
     // Normal consistency with zero density gradients on both sides: the template density
     // head and the correction are constant in x.
     tch::no_grad(|| {
-        let _ = g.template.sigma_head.weight.shallow_clone().zero_();
+        let _ = vs.variables()["template.sigma_head.weight"].shallow_clone().zero_();
     });
     let shape = g.shape_from_z(&z, None);
     let t = regularisers(&g, &shape, &samples, RegVariant::Release);

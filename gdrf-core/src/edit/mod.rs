@@ -10,6 +10,7 @@
 pub mod view;
 
 use crate::checkpoint::{load_tensors_with, tensors_to_bytes};
+use crate::config::{GeneratorConfig, TemplateKind};
 use crate::field::generator::{Generator, Truncation};
 use crate::nn::film::Film;
 use crate::nn::mapping::seeded_randn;
@@ -220,7 +221,7 @@ pub fn generator_id(vs: &nn::VarStore, g: &Generator) -> String {
             h = (h ^ b as u64).wrapping_mul(PRIME);
         }
     };
-    eat(serde_json::to_string(&g.cfg).unwrap_or_default().as_bytes());
+    eat(identity_config(&g.cfg).as_bytes());
     let mut vars: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
     vars.sort_by(|a, b| a.0.cmp(&b.0));
     for (name, t) in vars {
@@ -237,10 +238,19 @@ pub fn generator_id(vs: &nn::VarStore, g: &Generator) -> String {
     format!("{h:016x}")
 }
 
+/// The config as [`generator_id`] hashes it: a SIREN generator's as written before the
+/// `template` key existed, so that the feature and initialiser files made for it then (the
+/// shipped model's initialiser among them) still match it.
+fn identity_config(cfg: &GeneratorConfig) -> String {
+    let json = serde_json::to_string(cfg).unwrap_or_default();
+    match cfg.template {
+        TemplateKind::Siren => json.replacen(r#","template":"siren""#, "", 1),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::GeneratorConfig;
 
     fn small() -> (nn::VarStore, Generator) {
         tch::manual_seed(1);
@@ -248,6 +258,15 @@ mod tests {
         let cfg = GeneratorConfig::tiny();
         let g = Generator::new(&vs.root(), &cfg).unwrap();
         (vs, g)
+    }
+
+    /// A SIREN generator's identity hashes its config without the `template` key, exactly
+    /// as before the key existed (the tiny config's JSON as written then).
+    #[test]
+    fn siren_identities_are_those_made_before_the_template_key() {
+        let old = r#"{"latent_dim":8,"hidden_dim":16,"mapping_hidden_dim":16,"trunk_layers":5,"color_layers":4,"deform_layers":4,"correct_scale":100.0,"deform_scale":1.0,"deform_head_frequency":0.0,"deform_head_bias":"uniform"}"#;
+        assert_eq!(identity_config(&GeneratorConfig::tiny()), old);
+        assert!(serde_json::to_string(&GeneratorConfig::tiny()).unwrap().contains(r#""template":"siren""#));
     }
 
     #[test]

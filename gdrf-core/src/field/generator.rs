@@ -1,6 +1,6 @@
 //! The composed generator: codes or features → modulations → density first, colour second.
 use super::deform::DeformField;
-use super::template::TemplateField;
+use super::template::{self, Template};
 use crate::config::GeneratorConfig;
 use crate::nn::film::Film;
 use crate::nn::mapping::MappingNetwork;
@@ -56,7 +56,8 @@ pub struct FieldOptions {
 pub struct Density {
     /// Raw final density σ_t(x + Δx) + Δσ: `(B, P, 1)`.
     pub sigma: Tensor,
-    /// Template trunk feature f_t at x + Δx: `(B, P, H)`, input of the colour query.
+    /// Template feature f_t at x + Δx: `(B, P, F)` (the trunk's, F = H, for SIREN), input
+    /// of the colour query.
     pub feature: Tensor,
     /// Template density σ_t: `(B, P, 1)`.
     pub sigma_t: Tensor,
@@ -72,7 +73,8 @@ pub struct Generator {
     pub shape_mapping: MappingNetwork,
     pub appearance_mapping: MappingNetwork,
     pub deform: DeformField,
-    pub template: TemplateField,
+    /// T, the one `cfg.template` names.
+    pub template: Box<dyn Template>,
 }
 
 impl Generator {
@@ -87,7 +89,7 @@ impl Generator {
         let (z, h, m) = (cfg.latent_dim, cfg.hidden_dim, cfg.mapping_hidden_dim);
         Ok(Self {
             cfg: cfg.clone(),
-            template: TemplateField::new(vs / "template", cfg),
+            template: template::build(vs / "template", cfg),
             appearance_mapping: MappingNetwork::new(vs / "appearance_mapping", z, m, 2 * cfg.colour_layers * h),
             deform: DeformField::new(vs / "deform", cfg),
             shape_mapping: MappingNetwork::new(vs / "shape_mapping", z, m, 2 * cfg.deform_layers * h),
@@ -161,7 +163,7 @@ impl Generator {
         Density { sigma, feature, sigma_t, x_template, dx, dsigma }
     }
 
-    /// Colour query (the appearance side): `feature: (B, P, H)`, `dirs: (B, P, 3)` → rgb
+    /// Colour query (the appearance side): `feature: (B, P, F)`, `dirs: (B, P, 3)` → rgb
     /// `(B, P, 3)` in (0, 1).
     pub fn colour(&self, feature: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
         let rgb = self.template.colour(feature, &crate::nn::like(dirs, feature), appearance);
@@ -174,7 +176,7 @@ impl Generator {
         self.deform.forward(x, shape)
     }
 
-    /// T_σ alone at template-space points `x_t: (B, P, 3)`: `(f_t: (B, P, H), σ_t: (B, P, 1))`.
+    /// T_σ alone at template-space points `x_t: (B, P, 3)`: `(f_t: (B, P, F), σ_t: (B, P, 1))`.
     pub fn template_density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
         self.template.density(x_t)
     }

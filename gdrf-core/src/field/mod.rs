@@ -1,5 +1,6 @@
-//! The radiance field: deformation/correction Φ (shape side), template T (density trunk
-//! T_σ, colour branch T_c) and their composition in the generator.
+//! The radiance field: deformation/correction Φ (shape side), template T (density T_σ,
+//! colour T_c; the [`template::Template`] trait, the release's SIREN its first
+//! implementation) and their composition in the generator.
 pub mod deform;
 pub mod generator;
 pub mod template;

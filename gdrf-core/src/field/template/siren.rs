@@ -1,17 +1,21 @@
-//! T: the template radiance field shared by every instance.
+//! The release's template, SIREN layers: the first implementation of [`super::Template`]
+//! (`template = "siren"`, [`crate::config::TemplateKind::Siren`]).
 //!
 //! The density trunk T_σ is unconditioned (plain SIREN layers): density depends only on
 //! where a point lands in template space. The colour branch T_c is FiLM-modulated by the
 //! appearance code and reads the trunk feature f_t; the view direction enters only the
 //! last colour layer ("deferred direction").
+use super::Template;
 use crate::config::GeneratorConfig;
 use crate::nn::film::{Film, FilmLayer};
 use crate::nn::siren::SineLayer;
 use crate::nn::{Linear, WeightInit};
 use tch::{nn, Kind, Tensor};
 
+/// Parameter names are the release's (`trunk`, `sigma_head`, `color`, `rgb_head`), which
+/// checkpoints carry.
 #[derive(Debug)]
-pub struct TemplateField {
+pub struct SirenTemplate {
     pub trunk: Vec<SineLayer>,
     pub sigma_head: Linear,
     pub colour: Vec<FilmLayer>,
@@ -19,7 +23,8 @@ pub struct TemplateField {
     hidden: usize,
 }
 
-impl TemplateField {
+impl SirenTemplate {
+    /// The layers under `vs`, with the release's initialisation.
     pub fn new(vs: nn::Path, cfg: &GeneratorConfig) -> Self {
         let h = cfg.hidden_dim;
         let trunk = (0..cfg.trunk_layers)
@@ -43,16 +48,11 @@ impl TemplateField {
         let rgb_head = Linear::new(vs / "rgb_head", h, 3, WeightInit::Frequency(25.0));
         Self { trunk, sigma_head, colour, rgb_head, hidden: h }
     }
+}
 
-    /// Density query. `x_t: (B, P, 3)` template-space points → `(f_t: (B, P, H),
-    /// σ_t: (B, P, 1))`, σ_t raw (softplus is applied when integrating).
-    pub fn density(&self, x_t: &Tensor) -> (Tensor, Tensor) {
-        self.density_in(x_t, None)
-    }
-
-    /// [`Self::density`] with the hidden layers evaluated in `kind`: f_t comes back in
-    /// `kind` (the colour branch's input), σ_t in `x_t`'s dtype.
-    pub fn density_in(&self, x_t: &Tensor, kind: Option<Kind>) -> (Tensor, Tensor) {
+impl Template for SirenTemplate {
+    /// The trunk's first layer (3 → H) runs in the points' dtype, the rest in `kind`.
+    fn density_in(&self, x_t: &Tensor, kind: Option<Kind>) -> (Tensor, Tensor) {
         let mut f = x_t.shallow_clone();
         for (i, layer) in self.trunk.iter().enumerate() {
             f = layer.forward(&f);
@@ -64,8 +64,8 @@ impl TemplateField {
         (f, sigma)
     }
 
-    /// Colour query. `f_t: (B, P, H)`, `dirs: (B, P, 3)` → rgb `(B, P, 3)` in (0, 1).
-    pub fn colour(&self, f_t: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
+    /// `f_t: (B, P, H)`; the direction is prepended to the last colour layer's input.
+    fn colour(&self, f_t: &Tensor, dirs: &Tensor, appearance: &Film) -> Tensor {
         let last = self.colour.len() - 1;
         let mut h = f_t.shallow_clone();
         for (i, layer) in self.colour.iter().enumerate() {
