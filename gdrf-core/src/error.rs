@@ -34,6 +34,11 @@ pub enum Error {
     /// A value that could not be written as JSON (a header, a metrics or curve line).
     #[error("JSON encoding: {0}")]
     Json(#[from] serde_json::Error),
+    /// A new run started in a folder that already holds one (`--force` starts over).
+    #[error(
+        "{path} already holds a run; continue it with `gdrf-train --resume {path}`, or pass --force to start over"
+    )]
+    RunExists { path: PathBuf },
     /// An argument value outside what the function accepts.
     #[error("invalid argument: {0}")]
     Invalid(String),

@@ -3,7 +3,7 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::train::config::{cpu_has_bf16, Precision};
-use gdrf_core::train::{run, samples, RunLimits, Stopped, TrainConfig, Trainer};
+use gdrf_core::train::{run, samples, Progress, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -170,8 +170,34 @@ pub fn train(a: TrainArgs) -> Result<()> {
     if a.steps.is_some_and(|n| n < 1) || a.minutes.is_some_and(|m| m.is_nan() || m <= 0.0) {
         bail!("--steps and --minutes must be positive");
     }
+    let (_lock, mut trainer) = open(&a, rank.as_ref())?;
+    let threads = gdrf_core::data::thread_count(trainer.cfg().threads);
+    tch::set_num_threads(threads as i32);
+    let stop = stop_on_signals()?;
+    prepare_data(&trainer, rank.as_ref(), writer)?;
+    announce(&mut trainer, threads, writer)?;
+    let limits = RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) };
+    if !writer {
+        // The other ranks print only errors.
+        if trainer.run(limits, &stop, |_, _| {})? == Stopped::Interrupted {
+            std::process::exit(130);
+        }
+        return Ok(());
+    }
+    let stopped = run_with_bar(&mut trainer, &a, limits, &stop)?;
+    summarise(&trainer, stopped)?;
+    if stopped == Stopped::Interrupted {
+        std::process::exit(130);
+    }
+    Ok(())
+}
+
+/// The session's trainer, from the flags: a new run (`--config`), the run of `--resume`
+/// (under `--config` where given), with `--device` and `--threads`, joined to the ranks of
+/// a data-parallel run; with the run folder's lock, held while it trains.
+fn open(a: &TrainArgs, rank: Option<&gdrf_core::dist::Launch>) -> Result<(Option<run::RunLock>, Trainer)> {
     // On CUDA each rank of a machine takes its own GPU.
-    let device = |d: &str| match &rank {
+    let device = |d: &str| match rank {
         Some(l) if d == "cuda" => format!("cuda:{}", l.local_rank),
         _ => d.to_string(),
     };
@@ -193,59 +219,36 @@ pub fn train(a: TrainArgs) -> Result<()> {
     };
     // The config is read first: a bad one leaves no run directory behind.
     let config = a.config.as_deref().map(load).transpose()?;
-    // One process per run directory, taken before --force clears anything.
-    let run_dir = match (&a.config, &a.resume) {
+    let (run_dir, opening) = match (&a.config, &a.resume) {
         (_, Some(dir)) if !dir.is_dir() => {
             bail!("--resume {}: no such folder (expected a gdrf-train run directory)", dir.display())
         }
-        (_, Some(dir)) => dir.clone(),
-        (Some(path), None) => a.run_dir.clone().unwrap_or_else(|| default_run_dir(path)),
+        (_, Some(dir)) => (dir.clone(), run::Opening::Resume),
+        (Some(path), None) => {
+            (a.run_dir.clone().unwrap_or_else(|| default_run_dir(path)), run::Opening::New { force: a.force })
+        }
         (None, None) => bail!("pass --config FILE or --resume RUN_DIR"),
     };
     let group = rank
-        .as_ref()
         .map(|l| gdrf_core::dist::ProcessGroup::join(l, std::time::Duration::from_secs(a.dist_timeout)))
         .transpose()?;
-    // Rank 0 holds the folder; the other ranks of its run write nothing there, and read it
-    // only once rank 0 has taken it (clearing what a killed writer left) and resumed.
-    let _lock = writer.then(|| run::RunLock::acquire(&run_dir)).transpose()?;
-    if let (Some(g), false) = (&group, writer) {
-        g.barrier()?;
-    }
-    let mut trainer = match (config, &a.config, &a.resume) {
-        (Some(cfg), Some(path), Some(dir)) => Trainer::resume_with(dir, cfg)
-            .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
-        (Some(cfg), _, None) => {
-            if writer && !run::list_checkpoints(&run_dir)?.is_empty() {
-                if !a.force {
-                    bail!(
-                        "{} already holds a run; continue it with `gdrf-train --resume {}`, or pass --force to start over",
-                        run_dir.display(),
-                        run_dir.display()
-                    );
+    let (lock, mut trainer) = run::take(&run_dir, opening, group.as_ref(), || -> Result<Trainer> {
+        Ok(match (config, &a.config, &a.resume) {
+            (Some(cfg), Some(path), Some(dir)) => Trainer::resume_with(dir, cfg)
+                .with_context(|| format!("resuming {} with {}", dir.display(), path.display()))?,
+            (Some(cfg), _, None) => Trainer::new(cfg, &run_dir)?,
+            (None, _, Some(dir)) => {
+                let d = a.device.as_deref().map(device);
+                let mut t =
+                    Trainer::resume(dir, d.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
+                if let Some(n) = a.threads {
+                    t.set_threads(n);
                 }
-                for sub in [run::CHECKPOINTS, run::SAMPLES] {
-                    let _ = std::fs::remove_dir_all(run_dir.join(sub));
-                }
-                for f in [run::METRICS, run::CONFIG, run::GENERATOR] {
-                    let _ = std::fs::remove_file(run_dir.join(f));
-                }
+                t
             }
-            Trainer::new(cfg, &run_dir)?
-        }
-        (None, _, Some(dir)) => {
-            let d = a.device.as_deref().map(device);
-            let mut t = Trainer::resume(dir, d.as_deref()).with_context(|| format!("resuming {}", dir.display()))?;
-            if let Some(n) = a.threads {
-                t.set_threads(n);
-            }
-            t
-        }
-        _ => bail!("pass --config FILE or --resume RUN_DIR"),
-    };
-    if let (Some(g), true) = (&group, writer) {
-        g.barrier()?;
-    }
+            _ => bail!("pass --config FILE or --resume RUN_DIR"),
+        })
+    })?;
     for (path, why) in trainer.skipped_checkpoints() {
         eprintln!("warning: passed over {}, which is damaged: {why}", path.display());
     }
@@ -257,29 +260,31 @@ pub fn train(a: TrainArgs) -> Result<()> {
         }
         trainer.join_group(group)?;
     }
-    let threads = gdrf_core::data::thread_count(trainer.cfg().threads);
-    tch::set_num_threads(threads as i32);
+    Ok((lock, trainer))
+}
 
+/// A flag Ctrl-C and SIGTERM raise: the session finishes its step and writes a checkpoint.
+/// A second one exits at once.
+fn stop_on_signals() -> Result<Arc<AtomicBool>> {
     let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        ctrlc::set_handler(move || {
-            if stop.swap(true, Ordering::SeqCst) {
-                eprintln!("\nsecond interrupt: exiting now, without a checkpoint of the step in progress");
-                std::process::exit(130);
-            }
-            eprintln!(
-                "\ninterrupt: finishing the current step, then writing a checkpoint (Ctrl-C again to exit at once)"
-            );
-        })
-        .context("installing the Ctrl-C/SIGTERM handler")?;
-    }
+    let raised = stop.clone();
+    ctrlc::set_handler(move || {
+        if raised.swap(true, Ordering::SeqCst) {
+            eprintln!("\nsecond interrupt: exiting now, without a checkpoint of the step in progress");
+            std::process::exit(130);
+        }
+        eprintln!("\ninterrupt: finishing the current step, then writing a checkpoint (Ctrl-C again to exit at once)");
+    })
+    .context("installing the Ctrl-C/SIGTERM handler")?;
+    Ok(stop)
+}
 
+/// Generates a missing procedural dataset. The first rank of each machine generates it
+/// while the others wait, then they find it finished: two generators rewriting the same
+/// PNGs let a rank read an image another was still writing (seen as "empty file").
+fn prepare_data(trainer: &Trainer, rank: Option<&gdrf_core::dist::Launch>, writer: bool) -> Result<()> {
     let gen_bar = if writer { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
-    // The first rank of each machine generates a missing procedural dataset while the
-    // others wait, then they find it finished: two generators rewriting the same PNGs let
-    // a rank read an image another was still writing (seen as "empty file").
-    let first_here = rank.as_ref().is_none_or(|l| l.local_rank == 0);
+    let first_here = rank.is_none_or(|l| l.local_rank == 0);
     let prepared =
         if first_here { trainer.prepare_data(&|| gen_bar.inc(1))? } else { gdrf_core::data::Prepared::Existing };
     trainer.barrier()?;
@@ -290,22 +295,23 @@ pub fn train(a: TrainArgs) -> Result<()> {
     if writer && prepared == gdrf_core::data::Prepared::Generated {
         println!("generated the procedural dataset in {}", trainer.cfg().data.path.display());
     }
+    Ok(())
+}
+
+/// Loads the training images (every rank, before the first step) and, on the rank that
+/// writes, says what the session trains: the run, where it stands, the device, threads and
+/// precision, the networks' sizes and the training images.
+fn announce(trainer: &mut Trainer, threads: usize, writer: bool) -> Result<()> {
     let cfg = trainer.cfg().clone();
     let stage = cfg.stage(trainer.progress().step);
     let (g_params, d_all, d_used) = trainer.parameter_counts(stage.resolution);
     let n_images = trainer.dataset(stage.resolution)?.len();
+    if !writer {
+        return Ok(());
+    }
     let from = trainer.progress().step;
     let (_, world) = trainer.rank_of();
     let ranks = if world > 1 { format!(", {world} ranks") } else { String::new() };
-    if !writer {
-        // The other ranks print only errors.
-        let stopped =
-            trainer.run(RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) }, &stop, |_, _| {})?;
-        if stopped == Stopped::Interrupted {
-            std::process::exit(130);
-        }
-        return Ok(());
-    }
     let precision = cfg.precision.on(trainer.device());
     println!(
         "{} run {} at step {from}/{} on {:?} with {threads} threads{ranks}, {}",
@@ -327,40 +333,25 @@ pub fn train(a: TrainArgs) -> Result<()> {
         cfg.data.path.display(),
         r = stage.resolution
     );
+    Ok(())
+}
 
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.schedule.total_steps as u64) };
+/// Trains under a progress bar (or, `--quiet`, one line per logged step).
+fn run_with_bar(trainer: &mut Trainer, a: &TrainArgs, limits: RunLimits, stop: &AtomicBool) -> Result<Stopped> {
+    let log_interval = trainer.cfg().schedule.log_interval;
+    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(trainer.cfg().schedule.total_steps as u64) };
     bar.set_style(
         ProgressStyle::with_template("{prefix} [{bar:25}] {pos}/{len} {msg} | {elapsed} elapsed, eta {eta}")
             .expect("static template")
             .progress_chars("=> "),
     );
-    bar.set_position(from as u64);
-    let limits = RunLimits { steps: a.steps, seconds: a.minutes.map(|m| m * 60.0) };
+    bar.set_position(trainer.progress().step as u64);
     // A moving average of the seconds a step, not of each step's rate: with the coverage
     // term on every 4th step, averaging rates showed 340 img/s for a GPU run that did 74.
     let mut step_seconds = None::<f64>;
-    let stopped = trainer.run(limits, &stop, |r, p| {
+    let stopped = trainer.run(limits, stop, |r, p| {
         let secs = *step_seconds.insert(step_seconds.map_or(r.seconds, |old| 0.9 * old + 0.1 * r.seconds));
-        let ips = r.batch_size as f64 / secs.max(1e-9);
-        let term = |k: &str| r.g_terms.iter().chain(&r.d_terms).find(|t| t.0 == k).map_or(f64::NAN, |t| t.1);
-        let g = if r.lr_g == 0.0 {
-            "G off (g_lr 0: the discriminator trains alone)".to_string()
-        } else {
-            format!("G adv {:.3} pose {:.3} reg {:.3}", term("g_adv"), term("g_pose"), term("reg_normal"))
-        };
-        let msg = format!(
-            "{}² α {:.2} | {ips:.1} img/s | D {:.3} (real {:.3} fake {:.3}) | {g}{}",
-            r.resolution,
-            r.alpha,
-            r.d_total,
-            term("d_real"),
-            term("d_fake"),
-            if p.skipped_steps > 0 {
-                format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks)
-            } else {
-                String::new()
-            }
-        );
+        let msg = step_message(r, p, secs);
         bar.set_prefix(format!("stage {}", r.stage));
         bar.set_position(p.step as u64);
         if let Some(to) = r.rolled_back_to {
@@ -372,12 +363,42 @@ pub fn train(a: TrainArgs) -> Result<()> {
                 )
             });
         }
-        if a.quiet && r.step % cfg.schedule.log_interval == 0 {
+        if a.quiet && r.step % log_interval == 0 {
             println!("step {} {msg}", r.step);
         }
         bar.set_message(msg);
     })?;
     bar.finish_and_clear();
+    Ok(stopped)
+}
+
+/// A step's line: resolution, fade-in, speed (`secs` a step, averaged), the players'
+/// main terms, and the skips and rollbacks once there are any.
+fn step_message(r: &StepReport, p: &Progress, secs: f64) -> String {
+    let ips = r.batch_size as f64 / secs.max(1e-9);
+    let term = |k: &str| r.g_terms.iter().chain(&r.d_terms).find(|t| t.0 == k).map_or(f64::NAN, |t| t.1);
+    let g = if r.lr_g == 0.0 {
+        "G off (g_lr 0: the discriminator trains alone)".to_string()
+    } else {
+        format!("G adv {:.3} pose {:.3} reg {:.3}", term("g_adv"), term("g_pose"), term("reg_normal"))
+    };
+    format!(
+        "{}² α {:.2} | {ips:.1} img/s | D {:.3} (real {:.3} fake {:.3}) | {g}{}",
+        r.resolution,
+        r.alpha,
+        r.d_total,
+        term("d_real"),
+        term("d_fake"),
+        if p.skipped_steps > 0 {
+            format!(" | skipped {} rollbacks {}", p.skipped_steps, p.rollbacks)
+        } else {
+            String::new()
+        }
+    )
+}
+
+/// How the session ended, and where its checkpoint, generator, metrics and previews are.
+fn summarise(trainer: &Trainer, stopped: Stopped) -> Result<()> {
     let p = trainer.progress();
     let (latest, _) = run::latest_checkpoint(trainer.run_dir())?;
     let dir = trainer.run_dir().display();
@@ -399,13 +420,10 @@ pub fn train(a: TrainArgs) -> Result<()> {
         p.rollbacks,
         p.train_seconds
     );
-    if cfg.schedule.sample_interval > 0 {
+    if trainer.cfg().schedule.sample_interval > 0 {
         let shown: Vec<String> =
             samples::latest_previews(trainer.run_dir()).iter().map(|p| p.display().to_string()).collect();
         println!("previews: {}", shown.join(", "));
-    }
-    if stopped == Stopped::Interrupted {
-        std::process::exit(130);
     }
     Ok(())
 }

@@ -126,120 +126,20 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
         st.batch_split, a.device,
     );
     eprintln!("{title}\nrunning gdrf ({warmup} warm-up + {steps} timed steps) …");
-    let (g_lr, d_lr) = cfg.learning_rates(0);
-    let settings = Settings {
-        config: config.display().to_string(),
-        stage,
-        resolution: res,
-        num_steps: n,
-        batch_size: b,
-        batch_split: st.batch_split,
-        regions: st.regions,
-        warmup_steps: warmup,
-        timed_steps: steps,
-        device: a.device.clone(),
-        precision,
-        timed_steps_r1: "timed steps run at step indices where R1 is due (multiples of loss.r1_interval)",
-        real_images:
-            "gdrf: a 64-image procedural dataset at the stage's resolution; reference: random images and poses",
-        g_lr,
-        d_lr,
-        generator: cfg.generator.clone(),
-        discriminator: cfg.discriminator.clone(),
-        loss: cfg.loss.clone(),
-        optim: cfg.optim.clone(),
-        ema: cfg.ema.clone(),
-        camera: cfg.camera.clone(),
-        notes,
-    };
+    let settings = settings(a, &cfg, notes, precision);
     let mut ref_args = reference_args(&cfg, warmup, steps)?;
     ref_args.push(format!("--device={}", a.device));
     if bf16 {
         ref_args.push("--bf16".into());
     }
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let n = a.nproc;
-    let mut runs = Vec::new();
-    if n == 1 {
-        runs.push(measure(cfg.clone(), &tmp.0.join("run"), warmup, steps, cores, None)?);
-        if a.device == "cpu" && !bf16 && sine::vectorised() {
-            // The same steps with libtorch's float32 sine (MKL), which SLEEF's replaced.
-            eprintln!("running gdrf again with libtorch's sine ({warmup} warm-up + {steps} timed steps) …");
-            let dir = tmp.0.join("run-libtorch-sine");
-            let mut r = sine::with_libtorch_sine(|| measure(cfg, &dir, warmup, steps, cores, None))?;
-            r.implementation = "gdrf with libtorch's sine".into();
-            runs.push(r);
-        }
-        if !a.no_reference {
-            runs.push(reference_run("bench_step.py", &ref_args)?);
-        }
-    } else {
-        let mut alone = measure(cfg, &tmp.0.join("run"), warmup, steps, n, None)?;
-        alone.implementation = format!("gdrf, 1 process × {n} threads");
-        runs.push(alone);
-        eprintln!("running gdrf as {n} ranks of 1 thread …");
-        let mut ranks = ranks(a)?;
-        ranks.implementation = format!("gdrf, {n} ranks × 1 thread");
-        runs.push(ranks);
-        if !a.no_reference {
-            for (world, threads) in [(1, n), (n, 1)] {
-                let mut args = ref_args.clone();
-                args.extend([format!("--threads={threads}"), format!("--world={world}")]);
-                let mut r = reference_run("bench_step.py", &args)?;
-                r.implementation = if world == 1 {
-                    format!("PyTorch reference, 1 process × {n} threads")
-                } else {
-                    format!("PyTorch reference (torch.distributed), {n} ranks × 1 thread")
-                };
-                runs.push(r);
-            }
-        }
-    }
-    let per_second = |r: &Run| r.images_per_second.unwrap_or(f64::NAN);
-    println!("{title}");
-    let w = runs.iter().map(|r| r.implementation.chars().count()).max().unwrap_or(0).max(20) + 7;
-    println!("{:<w$}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
-    for r in &runs {
-        println!("{:<w$}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
-    }
-    if n == 1 {
-        // Every other run against gdrf's (peak memory is the process's so far).
-        for y in &runs[1..] {
-            println!(
-                "{:<w$}{:>15.2}×{:>11.2}×{:>11.2}×",
-                format!("{} / gdrf", y.implementation),
-                y.median("step") / runs[0].median("step"),
-                per_second(y) / per_second(&runs[0]),
-                y.peak_rss_mb / runs[0].peak_rss_mb
-            );
-        }
-    }
-    let mut title = title;
-    if n > 1 {
-        // Scaling efficiency: the ranks' throughput over one process's on the same cores.
-        let mut said = Vec::new();
-        for pair in runs.chunks(2) {
-            let (one, many) = (&pair[0], &pair[1]);
-            let efficiency = per_second(many) / per_second(one);
-            let share = many.median("allreduce") / many.median("step");
-            println!(
-                "{}: scaling efficiency {efficiency:.2}, all-reduce {:.0}% of the ranks' step",
-                many.implementation,
-                share * 100.0
-            );
-            said.push(format!(
-                "{} {efficiency:.2} ({:.0}% all-reduce)",
-                if said.is_empty() { "gdrf" } else { "reference" },
-                share * 100.0
-            ));
-        }
-        title = format!("{title}; {n} ranks × 1 thread vs 1 process × {n} threads, efficiency: {}", said.join(", "));
-    }
+    let runs = measure_all(a, cfg, &tmp.0, &ref_args, bf16)?;
+    let title = print_table(title, &runs, a.nproc);
     let machine = if a.device == "cpu" {
         format!("{} CPU threads", runs[0].threads)
     } else {
         format!("{}, {} CPU threads", a.device, runs[0].threads)
     };
+    let n = a.nproc;
     let phases = if n > 1 { vec!["step", "allreduce"] } else { vec!["step"] };
     let doc = Timings { title, machine, settings: Some(settings), phases, runs };
     let mut name = format!("step-{stem}-stage{stage}-b{b}");
@@ -254,6 +154,128 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     }
     doc.write(&a.out_dir, &name)?;
     Ok(Some(doc))
+}
+
+/// What the benchmark ran, for its JSON: the stage's sizes, the step counts, the device and
+/// precision, and the config's sections that shape a step.
+fn settings(a: &Options, cfg: &TrainConfig, notes: Vec<String>, precision: &'static str) -> Settings {
+    let st = &cfg.stages[0];
+    let (g_lr, d_lr) = cfg.learning_rates(0);
+    Settings {
+        config: a.config.display().to_string(),
+        stage: a.stage,
+        resolution: st.resolution,
+        num_steps: st.num_steps,
+        batch_size: st.batch_size,
+        batch_split: st.batch_split,
+        regions: st.regions,
+        warmup_steps: a.warmup,
+        timed_steps: a.steps,
+        device: a.device.clone(),
+        precision,
+        timed_steps_r1: "timed steps run at step indices where R1 is due (multiples of loss.r1_interval)",
+        real_images:
+            "gdrf: a 64-image procedural dataset at the stage's resolution; reference: random images and poses",
+        g_lr,
+        d_lr,
+        generator: cfg.generator.clone(),
+        discriminator: cfg.discriminator.clone(),
+        loss: cfg.loss.clone(),
+        optim: cfg.optim.clone(),
+        ema: cfg.ema.clone(),
+        camera: cfg.camera.clone(),
+        notes,
+    }
+}
+
+/// The runs compared: in one process, gdrf (and on the CPU in float32 gdrf with libtorch's
+/// sine) and the reference; with `--nproc` n > 1, gdrf and the reference each as one process
+/// of n threads and as n ranks of one thread.
+fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], bf16: bool) -> Result<Vec<Run>> {
+    let (warmup, steps) = (a.warmup, a.steps);
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let n = a.nproc;
+    let mut runs = Vec::new();
+    if n == 1 {
+        runs.push(measure(cfg.clone(), &tmp.join("run"), warmup, steps, cores, None)?);
+        if a.device == "cpu" && !bf16 && sine::vectorised() {
+            // The same steps with libtorch's float32 sine (MKL), which SLEEF's replaced.
+            eprintln!("running gdrf again with libtorch's sine ({warmup} warm-up + {steps} timed steps) …");
+            let dir = tmp.join("run-libtorch-sine");
+            let mut r = sine::with_libtorch_sine(|| measure(cfg, &dir, warmup, steps, cores, None))?;
+            r.implementation = "gdrf with libtorch's sine".into();
+            runs.push(r);
+        }
+        if !a.no_reference {
+            runs.push(reference_run("bench_step.py", ref_args)?);
+        }
+    } else {
+        let mut alone = measure(cfg, &tmp.join("run"), warmup, steps, n, None)?;
+        alone.implementation = format!("gdrf, 1 process × {n} threads");
+        runs.push(alone);
+        eprintln!("running gdrf as {n} ranks of 1 thread …");
+        let mut ranks = ranks(a)?;
+        ranks.implementation = format!("gdrf, {n} ranks × 1 thread");
+        runs.push(ranks);
+        if !a.no_reference {
+            for (world, threads) in [(1, n), (n, 1)] {
+                let mut args = ref_args.to_vec();
+                args.extend([format!("--threads={threads}"), format!("--world={world}")]);
+                let mut r = reference_run("bench_step.py", &args)?;
+                r.implementation = if world == 1 {
+                    format!("PyTorch reference, 1 process × {n} threads")
+                } else {
+                    format!("PyTorch reference (torch.distributed), {n} ranks × 1 thread")
+                };
+                runs.push(r);
+            }
+        }
+    }
+    Ok(runs)
+}
+
+/// Prints the runs' table under `title`: each run's median step, images a second and peak
+/// memory, then each against gdrf's (one process) or the ranks' scaling efficiency (`n` > 1,
+/// which the returned title then states).
+fn print_table(title: String, runs: &[Run], n: usize) -> String {
+    let per_second = |r: &Run| r.images_per_second.unwrap_or(f64::NAN);
+    println!("{title}");
+    let w = runs.iter().map(|r| r.implementation.chars().count()).max().unwrap_or(0).max(20) + 7;
+    println!("{:<w$}{:>16}{:>12}{:>12}", "", "median s/step", "images/s", "peak MB");
+    for r in runs {
+        println!("{:<w$}{:>16.3}{:>12.2}{:>12.0}", r.implementation, r.median("step"), per_second(r), r.peak_rss_mb);
+    }
+    if n == 1 {
+        // Every other run against gdrf's (peak memory is the process's so far).
+        for y in &runs[1..] {
+            println!(
+                "{:<w$}{:>15.2}×{:>11.2}×{:>11.2}×",
+                format!("{} / gdrf", y.implementation),
+                y.median("step") / runs[0].median("step"),
+                per_second(y) / per_second(&runs[0]),
+                y.peak_rss_mb / runs[0].peak_rss_mb
+            );
+        }
+        return title;
+    }
+    // Scaling efficiency: the ranks' throughput over one process's on the same cores.
+    let mut said = Vec::new();
+    for pair in runs.chunks(2) {
+        let (one, many) = (&pair[0], &pair[1]);
+        let efficiency = per_second(many) / per_second(one);
+        let share = many.median("allreduce") / many.median("step");
+        println!(
+            "{}: scaling efficiency {efficiency:.2}, all-reduce {:.0}% of the ranks' step",
+            many.implementation,
+            share * 100.0
+        );
+        said.push(format!(
+            "{} {efficiency:.2} ({:.0}% all-reduce)",
+            if said.is_empty() { "gdrf" } else { "reference" },
+            share * 100.0
+        ));
+    }
+    format!("{title}; {n} ranks × 1 thread vs 1 process × {n} threads, efficiency: {}", said.join(", "))
 }
 
 /// One rank of `--nproc`: the same stage and timing protocol on its share of the batch,

@@ -1,5 +1,6 @@
-//! Training losses: the generator's total (adversarial, pose, deformation regularisers)
-//! and the discriminator's (logistic, R1, pose), each with a named breakdown.
+//! Training losses: the generator's objective (adversarial, pose, latent prediction, mode
+//! seeking, the deformation regularisers and the coverage term: [`GeneratorObjective`]) and
+//! the discriminator's loss (logistic, R1, pose), each with a named breakdown.
 //!
 //! Losses take what was rendered and judged — discriminator outputs, poses, regulariser
 //! terms — and never render: the training loop renders once and decides what carries
@@ -9,10 +10,12 @@
 pub mod coverage;
 pub mod deform_reg;
 pub mod gan;
+mod objective;
 
 use crate::disc::DiscOutput;
 use crate::{Error, Result};
-use deform_reg::{RegConfig, RegTerms};
+use deform_reg::RegConfig;
+pub use objective::GeneratorObjective;
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
 
@@ -236,97 +239,6 @@ pub struct Schedule {
     pub alpha: f64,
 }
 
-/// The generator's adversarial terms on the discriminator's verdict `fake` about rendered
-/// images seen from `poses: (B, 2)`: top-k adversarial loss ([`gan::g_adversarial`]), pose and (when its weight
-/// is not 0) latent prediction of the codes `z`.
-pub fn generator_adversarial(
-    fake: &DiscOutput,
-    poses: &Tensor,
-    z: Option<&Tensor>,
-    at: Schedule,
-    cfg: &LossConfig,
-) -> Result<Losses> {
-    cfg.validate()?;
-    let b = fake.logit.size()[0];
-    if poses.size() != [b, 2] {
-        return Err(Error::Shape(format!("fake poses have shape {:?}, expected [{b}, 2]", poses.size())));
-    }
-    let k = gan::topk_count(at.step, b, cfg.topk_interval, cfg.topk_floor);
-    let adv = gan::g_adversarial(cfg.adversarial, &fake.logit, k);
-    let pose = gan::pose_loss(&fake.pose, poses);
-    let mut total = &adv + &pose * cfg.pose_weight;
-    let mut terms = vec![("g_adv", adv), ("g_pose", pose)];
-    if cfg.latent_weight != 0.0 {
-        if let Some(z) = z {
-            let l = gan::latent_loss(&fake.latent, z);
-            total = total + &l * cfg.latent_weight;
-            terms.push(("g_latent", l));
-        }
-    }
-    Ok(Losses { total, terms })
-}
-
-/// The generator's adversarial terms plus, when `diversity_weight` is on, the mode-seeking
-/// term on the rendered images `img: (B, 3, H, W)` (consecutive pairs share a pose).
-pub fn generator_image_terms(
-    fake: &DiscOutput,
-    img: &Tensor,
-    poses: &Tensor,
-    z: Option<&Tensor>,
-    at: Schedule,
-    cfg: &LossConfig,
-) -> Result<Losses> {
-    let mut l = generator_adversarial(fake, poses, z, at, cfg)?;
-    let weight = cfg.diversity_at(at.step);
-    if let (true, Some(z)) = (weight != 0.0, z) {
-        let b = img.size()[0];
-        if b % 2 != 0 || z.size()[0] != b {
-            return Err(Error::Shape(format!(
-                "the mode-seeking term needs an even batch of images with one code each, got {b} images and codes {:?}",
-                z.size()
-            )));
-        }
-        let d = gan::mode_seeking(img, z, cfg.diversity_cap, cfg.diversity_pool);
-        l.total = l.total + &d * weight;
-        l.terms.push(("g_diversity", d));
-    }
-    Ok(l)
-}
-
-/// The weighted deformation regularisers (from [`Generator::regularisers`]) as a breakdown,
-/// their total scaled by `scale` (the warm-up, [`LossConfig::reg_scale`]); the terms stay
-/// unweighted.
-///
-/// [`Generator::regularisers`]: crate::Generator::regularisers
-pub fn generator_regularisation(reg: RegTerms, cfg: &RegConfig, scale: f64) -> Losses {
-    let total = reg.weighted_sum(cfg);
-    let total = if scale == 1.0 { total } else { total * scale };
-    Losses {
-        total,
-        terms: vec![
-            ("reg_correction", reg.correction),
-            ("reg_smoothness", reg.smoothness),
-            ("reg_rigidity", reg.rigidity),
-            ("reg_normal", reg.normal),
-        ],
-    }
-}
-
-/// The generator's total: [`generator_image_terms`] + [`generator_regularisation`].
-#[allow(clippy::too_many_arguments)]
-pub fn generator_loss(
-    fake: &DiscOutput,
-    img: &Tensor,
-    poses: &Tensor,
-    z: Option<&Tensor>,
-    reg: RegTerms,
-    at: Schedule,
-    cfg: &LossConfig,
-) -> Result<Losses> {
-    let reg = generator_regularisation(reg, &cfg.reg, cfg.reg_scale(at.step));
-    Ok(generator_image_terms(fake, img, poses, z, at, cfg)?.merge(reg))
-}
-
 /// The discriminator's loss from its verdicts on real images and on (detached) fakes:
 /// adversarial terms ([`gan::d_adversarial`]), R1 on the reals when due ([`LossConfig::r1_due`]; lazily every
 /// `r1_interval` steps, scaled by it — `real_images` must then be the tensor `real` was
@@ -385,6 +297,7 @@ pub fn discriminator_loss(
 mod tests {
     use super::*;
     use crate::disc::Discriminator;
+    use deform_reg::RegTerms;
     use tch::{nn, Device, Kind};
 
     #[test]
@@ -488,30 +401,35 @@ mod tests {
         let reg = RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
         let cfg = LossConfig::default();
         let img = Tensor::zeros([2, 3, 4, 4], (Kind::Double, Device::Cpu));
-        let l = generator_loss(&d, &img, &poses, None, reg, Schedule { step: 0, alpha: 1.0 }, &cfg).unwrap();
+        let l =
+            GeneratorObjective::new(&cfg, Schedule { step: 0, alpha: 1.0 }).main(&d, &img, &poses, None, reg).unwrap();
         let adv = (Tensor::from_slice(&[-0.3f64, 1.0])).softplus().mean(Kind::Double).double_value(&[]);
         let pose = ((1.0 - 0.5f64.cos()) + (1.0 - 1.0f64.cos())) / 4.0;
         let want = adv + 15.0 * pose + 0.01 * 2.0 + 3.0 + 0.1 * 4.0 + 5.0 * 0.5;
         assert!((l.total.double_value(&[]) - want).abs() < 1e-12);
         let names: Vec<_> = l.terms.iter().map(|t| t.0).collect();
         assert_eq!(names, ["g_adv", "g_pose", "reg_correction", "reg_smoothness", "reg_rigidity", "reg_normal"]);
-        assert!(
-            generator_adversarial(&d, &poses.narrow(0, 0, 1), None, Schedule { step: 0, alpha: 1.0 }, &cfg).is_err()
-        );
+        assert!(GeneratorObjective::new(&cfg, Schedule { step: 0, alpha: 1.0 })
+            .adversarial(&d, &poses.narrow(0, 0, 1), None)
+            .is_err());
 
         // With the mode-seeking term on: two equal images of codes 2 apart in every entry
         // add weight × cap (ratio 0).
         let z = Tensor::from_slice(&[1.0f64, 1.0, -1.0, -1.0]).view([2, 2]);
         let on = LossConfig { diversity_weight: 3.0, diversity_cap: 0.2, ..Default::default() };
         let terms = |cfg: &LossConfig, img: &Tensor| {
-            generator_image_terms(&d, img, &poses, Some(&z), Schedule { step: 0, alpha: 1.0 }, cfg).unwrap()
+            GeneratorObjective::new(cfg, Schedule { step: 0, alpha: 1.0 })
+                .image_terms(&d, img, &poses, Some(&z))
+                .unwrap()
         };
         let (with, without) = (terms(&on, &img), terms(&cfg, &img));
         assert_eq!(f64::try_from(with.get("g_diversity").unwrap()).unwrap(), 0.2);
         assert!((with.total.double_value(&[]) - without.total.double_value(&[]) - 0.6).abs() < 1e-12);
         assert!(without.get("g_diversity").is_none());
         let odd = Tensor::zeros([3, 3, 4, 4], (Kind::Double, Device::Cpu));
-        assert!(generator_image_terms(&d, &odd, &poses, Some(&z), Schedule { step: 0, alpha: 1.0 }, &on).is_err());
+        assert!(GeneratorObjective::new(&on, Schedule { step: 0, alpha: 1.0 })
+            .image_terms(&d, &odd, &poses, Some(&z))
+            .is_err());
         let e = LossConfig { diversity_weight: -1.0, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("loss.diversity_weight"), "{e}");
         assert!(LossConfig { diversity_cap: 0.0, ..Default::default() }.validate().is_err());
@@ -522,7 +440,12 @@ mod tests {
         let w: Vec<f64> = [0, 250, 1000, 5000].iter().map(|&s| decaying.diversity_at(s)).collect();
         assert_eq!(w, [40.0, 30.0, 0.0, 0.0]);
         assert_eq!(on.diversity_at(1_000_000), 3.0);
-        let late = generator_image_terms(&d, &img, &poses, Some(&z), Schedule { step: 1000, alpha: 1.0 }, &decaying);
+        let late = GeneratorObjective::new(&decaying, Schedule { step: 1000, alpha: 1.0 }).image_terms(
+            &d,
+            &img,
+            &poses,
+            Some(&z),
+        );
         assert!(late.unwrap().get("g_diversity").is_none());
         let e = LossConfig { diversity_decay: -1, ..Default::default() }.validate().unwrap_err().to_string();
         assert!(e.contains("loss.diversity_decay"), "{e}");
@@ -536,8 +459,8 @@ mod tests {
         let c = |v: f64| Tensor::from(v);
         let terms = || RegTerms { correction: c(2.0), smoothness: c(3.0), rigidity: c(4.0), normal: c(0.5) };
         let at = |step| Schedule { step, alpha: 1.0 };
-        let early = generator_loss(&d, &img, &poses, None, terms(), at(25), &warm).unwrap();
-        let late = generator_loss(&d, &img, &poses, None, terms(), at(200), &warm).unwrap();
+        let early = GeneratorObjective::new(&warm, at(25)).main(&d, &img, &poses, None, terms()).unwrap();
+        let late = GeneratorObjective::new(&warm, at(200)).main(&d, &img, &poses, None, terms()).unwrap();
         let reg_full = 0.01 * 2.0 + 3.0 + 0.1 * 4.0 + 5.0 * 0.5;
         let gap = late.total.double_value(&[]) - early.total.double_value(&[]);
         assert!((gap - 0.75 * reg_full).abs() < 1e-12, "{gap}");

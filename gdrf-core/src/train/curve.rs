@@ -16,6 +16,7 @@ use crate::eval::seeds::SeedSummary;
 use crate::plot::{draw_dashes, draw_panels, draw_text, Panel, Series};
 use crate::{io, Error, Result};
 use serde::Serialize;
+use serde_json::Value;
 use std::path::{Path, PathBuf};
 
 pub const CURVE: &str = "curve.jsonl";
@@ -310,93 +311,31 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
     if lines.is_empty() {
         return Ok(None);
     }
-    let x = |l: &serde_json::Value| l["images_seen"].as_f64().unwrap_or(f64::NAN) / 1000.0;
-    let score = |l: &serde_json::Value, name: &str| -> Option<serde_json::Value> {
-        l["scores"]["scores"].as_array()?.iter().find(|s| s["score"] == name).cloned()
-    };
-    let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
     // Only the starts the curve spans: a line beyond its last evaluation is not drawn.
-    let span = |l: Option<&serde_json::Value>| l.and_then(|l| l["images_seen"].as_i64()).unwrap_or(0);
+    let span = |l: Option<&Value>| l.and_then(|l| l["images_seen"].as_i64()).unwrap_or(0);
     let (first, last) = (span(lines.first()), span(lines.last()));
     let starts: Vec<(i64, i64)> =
         starts.iter().copied().filter(|&(_, images)| (first..=last).contains(&images)).collect();
     let marks: Vec<f64> = starts.iter().map(|&(_, images)| images as f64 / 1000.0).collect();
-    let goal = |points: usize| Series {
-        name: format!("goal {GOAL_POSITION}"),
-        points: lines.iter().take(points.max(1)).map(|l| (x(l), GOAL_POSITION)).collect(),
-    };
-    let per_score = |f: &dyn Fn(&serde_json::Value) -> f64| -> Vec<Series> {
-        let mut series: Vec<Series> = SCORES
-            .iter()
-            .map(|(name, short)| Series {
-                name: short.to_string(),
-                points: lines.iter().map(|l| (x(l), score(l, name).map_or(f64::NAN, |s| f(&s)))).collect(),
-            })
-            .filter(|s| s.points.iter().any(|p| p.1.is_finite()))
-            .collect();
-        series.push(goal(lines.len()));
-        series
-    };
-    let seeds: Vec<u64> = lines
-        .last()
-        .and_then(|l| l["scores"]["seeds"].as_array())
-        .map(|a| a.iter().filter_map(|s| s.as_u64()).collect())
-        .unwrap_or_default();
-    let mut yaw: Vec<Series> = seeds
-        .iter()
-        .enumerate()
-        .map(|(k, seed)| Series {
-            name: format!("seed {seed}"),
-            points: lines
-                .iter()
-                .map(|l| (x(l), score(l, "pose yaw error deg").map_or(f64::NAN, |s| num(&s["model"][k]))))
-                .collect(),
-        })
-        .collect();
-    yaw.push(Series {
-        name: "real end".into(),
-        points: lines
-            .iter()
-            .map(|l| (x(l), score(l, "pose yaw error deg").map_or(f64::NAN, |s| num(&s["mean"]["real"]))))
-            .collect(),
-    });
-    yaw.push(Series { name: "goal 40".into(), points: lines.iter().map(|l| (x(l), 40.0)).collect() });
-    let seed_mean = |v: &serde_json::Value| {
-        let xs: Vec<f64> = v.as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
-        xs.iter().sum::<f64>() / xs.len() as f64
-    };
-    let swaps: Vec<Series> = SWAP_SCORES
-        .iter()
-        .flat_map(|(name, short)| {
-            ["model", "real"].map(|end| Series {
-                name: match (end, *short) {
-                    ("model", _) => short.to_string(),
-                    (_, "colour") => "colour, real = goal".into(),
-                    _ => format!("{short}, real"),
-                },
-                points: lines.iter().map(|l| (x(l), score(l, name).map_or(f64::NAN, |s| seed_mean(&s[end])))).collect(),
-            })
-        })
-        .collect();
     let panels = vec![
         Panel {
             title: "position, mean of seeds".into(),
-            series: per_score(&|s| num(&s["mean"]["position"])),
+            series: per_score(&lines, &|s| number(&s["mean"]["position"])),
             log_y: false,
             marks: marks.clone(),
         },
         Panel {
             title: "position, worst seed".into(),
-            series: per_score(&|s| num(&s["worst_position"])),
+            series: per_score(&lines, &|s| number(&s["worst_position"])),
             log_y: false,
             marks: marks.clone(),
         },
-        Panel { title: "yaw error deg".into(), series: yaw, log_y: false, marks: marks.clone() },
+        Panel { title: "yaw error deg".into(), series: yaw_series(&lines), log_y: false, marks: marks.clone() },
         // No goal line: structure's is in the title, and colour's is its real line, which a
         // line at 0.75 would hide whenever the real rate is 0.75 too.
         Panel {
             title: format!("swaps following code, goal structure {GOAL_STRUCTURE}"),
-            series: swaps,
+            series: swap_series(&lines),
             log_y: false,
             marks: marks.clone(),
         },
@@ -405,15 +344,21 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
             series: vec![
                 Series {
                     name: "median".into(),
-                    points: lines.iter().map(|l| (x(l), l["step_seconds"].as_f64().unwrap_or(f64::NAN))).collect(),
+                    points: lines
+                        .iter()
+                        .map(|l| (thousand_images(l), l["step_seconds"].as_f64().unwrap_or(f64::NAN)))
+                        .collect(),
                 },
-                Series { name: "mean".into(), points: lines.iter().map(x).zip(mean_step_seconds(&lines)).collect() },
+                Series {
+                    name: "mean".into(),
+                    points: lines.iter().map(thousand_images).zip(mean_step_seconds(&lines)).collect(),
+                },
             ],
             log_y: false,
             marks,
         },
     ];
-    let mut img = draw_panels(&panels, 2, 520, 320);
+    let img = draw_panels(&panels, 2, 520, 320);
     let mut caption = format!(
         "x: thousand images seen. {} evaluations, last at step {}",
         lines.len(),
@@ -426,10 +371,89 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
     let mut with_caption = image::RgbImage::from_pixel(img.width(), img.height() + 18, image::Rgb([255, 255, 255]));
     image::imageops::overlay(&mut with_caption, &img, 0, 0);
     draw_text(&mut with_caption, 10, img.height() as i64 + 4, &caption, image::Rgb([20, 20, 20]), 1);
-    img = with_caption;
     let path = run_dir.join(CURVE_PLOT);
-    io::save_png(&path, &img)?;
+    io::save_png(&path, &with_caption)?;
     Ok(Some(path))
+}
+
+/// A curve line's x: thousands of images seen.
+fn thousand_images(l: &Value) -> f64 {
+    l["images_seen"].as_f64().unwrap_or(f64::NAN) / 1000.0
+}
+
+/// The evaluation's entry for the score `name` in a curve line.
+fn score_of(l: &Value, name: &str) -> Option<Value> {
+    l["scores"]["scores"].as_array()?.iter().find(|s| s["score"] == name).cloned()
+}
+
+fn number(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+
+/// One series per calibrated score that has a finite value, of what `f` takes from its
+/// entry, and the goal line.
+fn per_score(lines: &[Value], f: &dyn Fn(&Value) -> f64) -> Vec<Series> {
+    let mut series: Vec<Series> = SCORES
+        .iter()
+        .map(|(name, short)| Series {
+            name: short.to_string(),
+            points: lines.iter().map(|l| (thousand_images(l), score_of(l, name).map_or(f64::NAN, |s| f(&s)))).collect(),
+        })
+        .filter(|s| s.points.iter().any(|p| p.1.is_finite()))
+        .collect();
+    series.push(Series {
+        name: format!("goal {GOAL_POSITION}"),
+        points: lines.iter().map(|l| (thousand_images(l), GOAL_POSITION)).collect(),
+    });
+    series
+}
+
+/// The yaw error of each seed of the last evaluation, the real end's, and the goal.
+fn yaw_series(lines: &[Value]) -> Vec<Series> {
+    let seeds: Vec<u64> = lines
+        .last()
+        .and_then(|l| l["scores"]["seeds"].as_array())
+        .map(|a| a.iter().filter_map(|s| s.as_u64()).collect())
+        .unwrap_or_default();
+    let yaw = |l: &Value, f: &dyn Fn(&Value) -> f64| score_of(l, "pose yaw error deg").map_or(f64::NAN, |s| f(&s));
+    let mut series: Vec<Series> = seeds
+        .iter()
+        .enumerate()
+        .map(|(k, seed)| Series {
+            name: format!("seed {seed}"),
+            points: lines.iter().map(|l| (thousand_images(l), yaw(l, &|s| number(&s["model"][k])))).collect(),
+        })
+        .collect();
+    series.push(Series {
+        name: "real end".into(),
+        points: lines.iter().map(|l| (thousand_images(l), yaw(l, &|s| number(&s["mean"]["real"])))).collect(),
+    });
+    series.push(Series { name: "goal 40".into(), points: lines.iter().map(|l| (thousand_images(l), 40.0)).collect() });
+    series
+}
+
+/// The swap tests' rates, seed means: the model's and the real end's of each.
+fn swap_series(lines: &[Value]) -> Vec<Series> {
+    let seed_mean = |v: &Value| {
+        let xs: Vec<f64> = v.as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
+        xs.iter().sum::<f64>() / xs.len() as f64
+    };
+    SWAP_SCORES
+        .iter()
+        .flat_map(|(name, short)| {
+            ["model", "real"].map(|end| Series {
+                name: match (end, *short) {
+                    ("model", _) => short.to_string(),
+                    (_, "colour") => "colour, real = goal".into(),
+                    _ => format!("{short}, real"),
+                },
+                points: lines
+                    .iter()
+                    .map(|l| (thousand_images(l), score_of(l, name).map_or(f64::NAN, |s| seed_mean(&s[end]))))
+                    .collect(),
+            })
+        })
+        .collect()
 }
 
 /// Side of the swap matrix's corner a filmstrip row shows.

@@ -9,6 +9,7 @@
 //! uninterrupted run, bit for bit on the CPU.
 pub mod config;
 pub mod curve;
+pub mod hooks;
 pub mod optim;
 mod parallel;
 pub mod pass;
@@ -187,10 +188,6 @@ pub struct Trainer {
     permutation: Option<(i64, Vec<i64>)>,
     /// Injected faults already fired (not saved: a replay after a rollback runs clean).
     injected: BTreeSet<i64>,
-    /// The evaluation's real-data side, built at the first `eval.interval` step.
-    evaluator: Option<crate::eval::evaluator::Evaluator>,
-    /// Seconds of each step since the last evaluation (the curve's step time).
-    step_seconds: Vec<f64>,
     /// Checkpoints a resume passed over as damaged, newest first, with why.
     skipped: Vec<(PathBuf, String)>,
     /// The data-parallel group this trainer is a rank of ([`Trainer::join_group`]).
@@ -267,40 +264,28 @@ pub enum Stopped {
 }
 
 impl Trainer {
-    /// Trains until the schedule ends, a limit is reached or `stop` is raised, logging
-    /// to metrics.jsonl, checkpointing every `checkpoint_interval` steps and writing
-    /// previews every `sample_interval` steps. Whatever ends the session, it ends with a
-    /// checkpoint of the last step. A fresh run first writes its resolved config, a
-    /// step-0 checkpoint (the rollback target of early failures) and step-0 previews.
+    /// Trains until the schedule ends, a limit is reached or `stop` is raised, calling the
+    /// session's hooks ([`hooks`]: metrics.jsonl, `on_step`, checkpoints, previews, the
+    /// learning curve) before the first step, after each step and after the last. Whatever
+    /// ends the session, it ends with a checkpoint of the last step. A fresh run first
+    /// writes its resolved config, a step-0 checkpoint (the rollback target of early
+    /// failures) and step-0 previews.
     pub fn run(
         &mut self,
         limits: RunLimits,
         stop: &std::sync::atomic::AtomicBool,
-        mut on_step: impl FnMut(&StepReport, &Progress),
+        on_step: impl FnMut(&StepReport, &Progress),
     ) -> Result<Stopped> {
         use std::sync::atomic::Ordering;
         std::fs::create_dir_all(&self.run_dir)
             .map_err(|source| Error::Io { path: self.run_dir.clone(), err: source })?;
-        // Of a data-parallel group, rank 0 alone writes (the ranks are identical replicas).
-        let writer = self.is_writer();
-        if writer && run::list_checkpoints(&self.run_dir)?.is_empty() {
-            run::truncate_metrics(&self.run_dir, self.progress.step)?;
-            crate::paths::write_atomic(&self.run_dir.join(run::CONFIG), self.cfg.to_store().to_toml()?.as_bytes())?;
-            self.save_checkpoint()?;
-            if self.cfg.schedule.sample_interval > 0 {
-                samples::write_previews(self)?;
-            }
-        }
+        let mut hooks = hooks::Hooks::of_session(self, on_step);
+        let fresh = self.is_writer() && run::list_checkpoints(&self.run_dir)?.is_empty();
+        hooks.at(&hooks::Point::Start { fresh }, self)?;
         let start = Instant::now();
         let first = self.progress.step;
-        let s = self.cfg.schedule.clone();
-        let mut saved_at = self.progress.step;
-        // An evaluation interrupted before its line was written is made up on resume.
-        if writer && self.eval_due(first) && !curve::has(&self.run_dir, first)? {
-            self.evaluate()?;
-        }
         let stopped = loop {
-            if self.progress.step >= s.total_steps {
+            if self.progress.step >= self.cfg.schedule.total_steps {
                 break Stopped::Finished;
             }
             // Every rank stops at the same step: a stop or limit on any stops all.
@@ -314,107 +299,10 @@ impl Trainer {
                 break Stopped::Limit;
             }
             let report = self.step()?;
-            self.step_seconds.push(report.seconds);
-            if let Some(to) = report.rolled_back_to {
-                saved_at = to;
-            } else if writer && (report.step % s.log_interval == 0 || report.d_skipped || report.g_skipped) {
-                run::append_metrics(&self.run_dir, &report.metrics_line(&self.progress))?;
-            }
-            on_step(&report, &self.progress);
-            let done = self.progress.step;
-            if done % s.checkpoint_interval == 0 && report.rolled_back_to.is_none() {
-                if writer {
-                    self.save_checkpoint()?;
-                }
-                saved_at = done;
-            }
-            if writer && s.sample_interval > 0 && done % s.sample_interval == 0 {
-                samples::write_previews(self)?;
-            }
-            if writer && self.eval_due(done) {
-                self.evaluate()?;
-            }
+            hooks.at(&hooks::Point::Step(&report), self)?;
         };
-        if writer && saved_at != self.progress.step {
-            self.save_checkpoint()?;
-            if s.sample_interval > 0 {
-                samples::write_previews(self)?;
-            }
-        }
+        hooks.at(&hooks::Point::End, self)?;
         Ok(stopped)
-    }
-
-    /// Whether the curve has an evaluation at `step` (a positive multiple of `eval.interval`).
-    fn eval_due(&self, step: i64) -> bool {
-        self.cfg.eval.interval > 0 && step > 0 && step % self.cfg.eval.interval == 0
-    }
-
-    /// Scores the EMA generator as `gdrf-train eval --seeds` scores a generator file (`[eval]`
-    /// settings, the dataset of `[data]`; each seed beside its random-weight generator) and
-    /// records it on the learning curve ([`curve::record`]). Returns the curve's line.
-    pub fn evaluate(&mut self) -> Result<serde_json::Value> {
-        use crate::eval::evaluator::{score_generator, EvalOptions, Evaluator};
-        let e = self.cfg.eval.clone();
-        let probe = e.probe.clone().ok_or_else(|| Error::Config("eval.probe is not set".into()))?;
-        let seeds = if e.seeds.is_empty() { vec![self.cfg.seed] } else { e.seeds.clone() };
-        let start = Instant::now();
-        if self.evaluator.is_none() {
-            let opts = EvalOptions {
-                num: e.num,
-                swap: e.swap,
-                resolution: (e.resolution > 0).then_some(e.resolution),
-                samples: e.samples,
-                seed: seeds[0],
-                threads: self.cfg.threads,
-                ..EvalOptions::default()
-            };
-            self.evaluator = Some(Evaluator::new(&self.cfg.data.path, &probe, &opts, self.device, &mut |_, _, _| {})?);
-        }
-        let header = self.header("generator");
-        // As committed records show them: relative to the repository where inside it.
-        let name = crate::paths::shown(&self.run_dir.join(run::GENERATOR));
-        let dataset = PathBuf::from(crate::paths::shown(&self.cfg.data.path));
-        let ev = self.evaluator.as_mut().expect("built above");
-        let mut results = Vec::with_capacity(seeds.len());
-        let mut seed_start = start;
-        for &seed in &seeds {
-            ev.reseed(seed)?;
-            let what = format!(" (seed {seed})");
-            let names = (name.clone(), dataset.as_path());
-            results.push(score_generator(
-                ev,
-                &self.ema_generator,
-                &header,
-                names,
-                &what,
-                seed_start,
-                &mut |_, _, _| {},
-            )?);
-            seed_start = Instant::now();
-        }
-        let summary = crate::eval::seeds::summarise(&results)?;
-        let mut times = std::mem::take(&mut self.step_seconds);
-        times.sort_by(f64::total_cmp);
-        let point = curve::CurvePoint {
-            step: self.progress.step,
-            images_seen: self.progress.images_seen,
-            train_seconds: self.progress.train_seconds,
-            step_seconds: (!times.is_empty()).then(|| {
-                let m = times.len() / 2;
-                if times.len() % 2 == 1 {
-                    times[m]
-                } else {
-                    0.5 * (times[m - 1] + times[m])
-                }
-            }),
-            eval_seconds: start.elapsed().as_secs_f64(),
-            scores: &summary,
-        };
-        curve::record(&self.run_dir, &point, &results)?;
-        // The generator scored, kept whatever checkpoints are pruned later: the curve's best
-        // point can be shipped.
-        self.export_generator(&curve::eval_dir(&self.run_dir, point.step).join(run::GENERATOR))?;
-        Ok(serde_json::to_value(&point)?)
     }
 
     /// Parameter counts: (generator, discriminator in all, discriminator used at `res`).

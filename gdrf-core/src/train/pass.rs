@@ -3,9 +3,7 @@
 use crate::camera::Poses;
 use crate::disc::Judge;
 use crate::loss::deform_reg::{regularisers, select_samples};
-use crate::loss::{
-    discriminator_loss, generator_image_terms, generator_loss, generator_regularisation, LossConfig, Losses, Schedule,
-};
+use crate::loss::{discriminator_loss, GeneratorObjective, LossConfig, Losses, Schedule};
 use crate::render::{Noise, RenderedRays, Renderer};
 use crate::{Generator, Latents, Result};
 use tch::{Kind, Tensor};
@@ -65,7 +63,7 @@ pub fn generator_judgement(
     let d = disc.judge(judged.img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
     let reg = regularisers(generator, &latents.shape, &samples, cfg.reg.variant);
-    generator_loss(&d, judged.img, &judged.poses.stacked(), judged.z, reg, at, cfg)
+    GeneratorObjective::new(cfg, at).main(&d, judged.img, &judged.poses.stacked(), judged.z, reg)
 }
 
 /// The discriminator's loss: fakes rendered without gradients, then
@@ -130,6 +128,7 @@ pub fn patch_gradients(
     (split, fault): (f64, f64),
 ) -> Result<Losses> {
     let gen = renderer.generator;
+    let objective = GeneratorObjective::new(cfg, at);
     // The release's two-pass patch step: render without gradients, take D's gradient
     // w.r.t. the image alone, then re-render each band with gradients at the very
     // sample depths of the first pass and backpropagate its slice of that gradient.
@@ -140,7 +139,7 @@ pub fn patch_gradients(
     let img = img.detach().set_requires_grad(true);
     let seen = view(&img)?;
     let d = judge.judge(&seen, at.alpha)?;
-    let mut adv = generator_image_terms(&d, &seen, &judged_poses.stacked(), Some(judged_z), at, cfg)?;
+    let mut adv = objective.image_terms(&d, &seen, &judged_poses.stacked(), Some(judged_z))?;
     adv.total = adv.total.g_mul_scalar(fault);
     let g_img = Tensor::run_backward(&[&adv.total / split], &[&img], false, false).remove(0);
     // (B, 3, H, W) → (B, R, 3), the layout of per-ray pixels; pixel = (img + 1)/2.
@@ -156,11 +155,7 @@ pub fn patch_gradients(
     }
     let lat = gen.latents(z, z, None)?;
     let samples = select_samples(&RenderedRays::concat(&parts), &cfg.reg, Some(reg_rays));
-    let reg = generator_regularisation(
-        regularisers(gen, &lat.shape, &samples, cfg.reg.variant),
-        &cfg.reg,
-        cfg.reg_scale(at.step),
-    );
+    let reg = objective.regularisation(regularisers(gen, &lat.shape, &samples, cfg.reg.variant));
     (&reg.total / split).backward();
     Ok(adv.merge(reg))
 }

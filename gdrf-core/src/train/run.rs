@@ -1,5 +1,6 @@
 //! The run directory: checkpoints (the last K kept), the exported EMA generator, the
-//! resolved config, metrics.jsonl and preview images.
+//! resolved config, metrics.jsonl and preview images; and how a session takes it ([`take`]:
+//! the lock, starting over with `force`, the ranks of a data-parallel run).
 //!
 //! ```text
 //! RUN_DIR/config.toml                    the resolved config (every default written out)
@@ -68,6 +69,53 @@ impl RunLock {
         remove_temporaries(run_dir)?;
         Ok(Self { _file: file })
     }
+}
+
+/// What a session does with its run folder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Opening {
+    /// Continues the run the folder holds.
+    Resume,
+    /// Starts a new run; `force`: in a folder that already holds one, whose checkpoints,
+    /// metrics, config, generator and previews are removed first (refused without it).
+    New { force: bool },
+}
+
+/// Takes `run_dir` for one session and builds the session's trainer with `open` once the
+/// folder is ready; returns the folder's lock (held by the writing process: alone, or rank
+/// 0 of `group`) with what `open` built. The other ranks of a group write nothing there,
+/// and read it only once rank 0 has taken it (clearing what a killed writer left, or an
+/// old run with [`Opening::New`] `force`) and opened it.
+pub fn take<T, E: From<Error>>(
+    run_dir: &Path,
+    opening: Opening,
+    group: Option<&crate::dist::ProcessGroup>,
+    open: impl FnOnce() -> std::result::Result<T, E>,
+) -> std::result::Result<(Option<RunLock>, T), E> {
+    let writer = group.is_none_or(|g| g.rank() == 0);
+    // One process per run directory, taken before `force` clears anything.
+    let lock = writer.then(|| RunLock::acquire(run_dir)).transpose()?;
+    if let (Some(g), false) = (group, writer) {
+        g.barrier()?;
+    }
+    if let (Opening::New { force }, true) = (opening, writer) {
+        if !list_checkpoints(run_dir)?.is_empty() {
+            if !force {
+                return Err(Error::RunExists { path: run_dir.to_path_buf() }.into());
+            }
+            for sub in [CHECKPOINTS, SAMPLES] {
+                let _ = std::fs::remove_dir_all(run_dir.join(sub));
+            }
+            for f in [METRICS, CONFIG, GENERATOR] {
+                let _ = std::fs::remove_file(run_dir.join(f));
+            }
+        }
+    }
+    let opened = open()?;
+    if let (Some(g), true) = (group, writer) {
+        g.barrier()?;
+    }
+    Ok((lock, opened))
 }
 
 /// File name of the checkpoint after `step` steps.

@@ -68,8 +68,6 @@ impl Trainer {
             datasets: BTreeMap::new(),
             permutation: None,
             injected: BTreeSet::new(),
-            evaluator: None,
-            step_seconds: Vec::new(),
             skipped: Vec::new(),
             group: None,
         })

@@ -1,6 +1,7 @@
 //! One training step: the real batch, the generator's draws, the discriminator's and the
-//! generator's updates (two renders, or one render shared by both players), the coverage
-//! term, and the guarded application of each update.
+//! generator's updates (two renders, or one render shared by both players), the draws and
+//! renderers of the coverage term (which the generator's objective adds), and the guarded
+//! application of each update.
 use super::optim::{clip_grads, grad_norm, zero_grads};
 use super::parallel::GRADIENT_BUCKET_BYTES;
 use super::{discriminator_judgement, generator_judgement, patch_gradients, Judged};
@@ -11,9 +12,9 @@ use crate::data::{self, Dataset};
 use crate::disc::augment::AugmentedJudge;
 use crate::disc::Judge;
 use crate::dist::Reduce;
-use crate::loss::coverage::{coverage_gradients, CoverageDraws};
+use crate::loss::coverage::CoverageDraws;
 use crate::loss::deform_reg::reg_ray_count;
-use crate::loss::{Losses, Schedule};
+use crate::loss::{GeneratorObjective, Losses, Schedule};
 use crate::render::{assemble, background_share, on_background, Noise, RenderedRays, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{Error, Result};
@@ -327,32 +328,26 @@ impl Trainer {
             Some(l) => l,
             None => self.generator_gradients(stage, at)?,
         };
-        let coverage = self.cfg.loss.coverage_at(at.step);
-        if coverage > 0.0 {
-            let poses = real_poses.as_ref().ok_or_else(|| {
-                Error::Config(
-                    "loss.coverage_weight needs the real images' poses; the dataset has none (see data.poses)".into(),
-                )
-            })?;
-            let c = self.coverage_gradients(stage, at, real, poses, coverage)?;
-            losses.total = &losses.total + &c * coverage;
-            losses.terms.push(("g_coverage", c));
+        let objective = GeneratorObjective::new(&self.cfg.loss, at);
+        if objective.coverage_weight() > 0.0 {
+            losses = self.add_coverage(&objective, losses, (stage, at.step), real, real_poses.as_ref())?;
         }
         self.apply(Net::G, &losses, lr)
     }
 
-    /// The coverage term's gradient times `weight`, left in G (see [`crate::loss::coverage`]),
-    /// with this step's draws, on this rank's rows of the global batch `real` seen from `real_poses`
-    /// (a per-image term: the ranks' average is the global batch's). Returns the MSE.
-    fn coverage_gradients(
-        &mut self,
-        stage: &Stage,
-        at: Schedule,
+    /// Adds the coverage term to `others`, the generator's other terms of `step`
+    /// ([`GeneratorObjective::add_coverage`]), with this step's draws, on this rank's rows of
+    /// the global batch `real` seen from `real_poses` (a per-image term: the ranks' average
+    /// is the global batch's).
+    fn add_coverage(
+        &self,
+        objective: &GeneratorObjective,
+        others: Losses,
+        (stage, step): (&Stage, i64),
         real: &Tensor,
-        real_poses: &Tensor,
-        weight: f64,
-    ) -> Result<Tensor> {
-        let (b, res, step) = (real.size()[0], stage.resolution, at.step);
+        real_poses: Option<&Tensor>,
+    ) -> Result<Losses> {
+        let (b, res) = (real.size()[0], stage.resolution);
         let k = self.cfg.loss.coverage_candidates;
         let latent = self.cfg.generator.latent_dim as i64;
         let shape = [b, res * res, stage.num_steps as i64];
@@ -361,21 +356,15 @@ impl Trainer {
             jitter: self.own_rows(&self.rng(step, Purpose::CoverageJitter).uniform(&shape), 1),
             importance: self.own_rows(&self.rng(step, Purpose::CoverageImportance).uniform(&shape), 1),
         };
-        let (real, real_poses) = (self.own_rows(real, 1), self.own_rows(real_poses, 1));
+        let real = self.own_rows(real, 1);
+        let real_poses = real_poses.map(|p| self.own_rows(p, 1));
         let rc = self.cfg.render_config(step);
         // The candidates, without gradients or random draws (no jitter, mid-point importance
         // samples).
         let rc_candidates = crate::RenderConfig { jitter: false, ..rc.clone() };
         let renderers = (self.live_renderer(&rc_candidates)?, self.live_renderer(&rc)?);
-        coverage_gradients(
-            &renderers,
-            &real,
-            &real_poses,
-            &draws,
-            (stage.num_steps as i64, stage.batch_split),
-            &self.cfg.loss,
-            weight,
-        )
+        let samples = (stage.num_steps as i64, stage.batch_split);
+        objective.add_coverage(others, &renderers, (&real, real_poses.as_ref()), &draws, samples)
     }
 
     /// Computes the generator's gradients of the step about to run and leaves them in

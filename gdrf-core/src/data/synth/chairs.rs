@@ -267,147 +267,162 @@ impl ChairParams {
         }
     }
 
+    /// The legs under a seat whose underside is at height `yb`, `hw` × `hd` half wide and deep.
     fn leg_prims(&self, prims: &mut Vec<Prim>, yb: f32, hw: f32, hd: f32) {
         let m = self.member;
-        let round_seat = self.seat == SeatShape::Round;
-        // Tops of corner legs (x, z) and a leg from a top point splayed outwards.
-        let splayed = |x: f32, z: f32, splay: f32| {
-            let out = v3(x, 0.0, z).normalized() * (splay * yb);
-            (v3(x, yb + m / 2.0, z), v3(x + out.x, 0.0, z + out.z))
-        };
         match self.legs {
-            Legs::Four { splay, round, stretchers } => {
-                let corners: Vec<(f32, f32)> = if round_seat {
-                    (0..4)
-                        .map(|i| (TAU * (i as f32 + 0.5) / 4.0).sin_cos())
-                        .map(|(s, c)| (0.7 * hw * c, 0.7 * hw * s))
-                        .collect()
-                } else {
-                    [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-                        .iter()
-                        .map(|(a, b)| (a * (hw - 0.75 * m), b * (hd - 0.75 * m)))
-                        .collect()
-                };
-                let legs: Vec<(V3, V3)> = corners.iter().map(|&(x, z)| splayed(x, z, splay)).collect();
-                for &(top, foot) in &legs {
-                    let foot = foot + v3(0.0, m / 2.0, 0.0);
-                    prims.push(if round {
-                        rod(top, foot, m / 2.0, LEGS)
-                    } else {
-                        beam(foot, top, m / 2.0, m / 2.0, None, LEGS)
-                    });
-                }
-                if stretchers {
-                    let f = 0.25;
-                    let at = |(top, foot): (V3, V3)| foot + (top - foot) * f;
-                    for i in 0..4 {
-                        prims.push(rod(at(legs[i]), at(legs[(i + 1) % 4]), 0.35 * m, LEGS));
-                    }
-                }
-            }
+            Legs::Four { splay, round, stretchers } => self.four_legs(prims, (splay, round, stretchers), yb, hw, hd),
             Legs::Three { splay } => {
                 let r = 0.65 * hw.min(hd);
                 for i in 0..3 {
                     let (s, c) = (FRAC_PI_2 + TAU * i as f32 / 3.0).sin_cos();
-                    let (top, foot) = splayed(r * c, r * s, splay);
+                    let (top, foot) = self.splayed(r * c, r * s, splay, yb);
                     prims.push(rod(top, foot + v3(0.0, m / 2.0, 0.0), m / 2.0, LEGS));
                 }
             }
-            Legs::Swivel { spokes, radius } => {
-                let hub_y = 0.08;
-                prims.push(Prim::new(
-                    Shape::RoundBox { half: v3(0.11, 0.015, 0.11), round: 0.005 },
-                    Rot::IDENTITY,
-                    v3(0.0, yb - 0.015, 0.0),
-                    LEGS,
-                ));
-                let col_lo = hub_y;
-                prims.push(Prim::new(
-                    Shape::Cylinder { radius: 0.022, half_height: (yb - col_lo) / 2.0, round: 0.0 },
-                    Rot::IDENTITY,
-                    v3(0.0, (yb + col_lo) / 2.0, 0.0),
-                    LEGS,
-                ));
-                prims.push(Prim::new(
-                    Shape::Cylinder { radius: 0.035, half_height: 0.08, round: 0.005 },
-                    Rot::IDENTITY,
-                    v3(0.0, hub_y + 0.08, 0.0),
-                    LEGS,
-                ));
-                prims.push(Prim::new(
-                    Shape::Cylinder { radius: 0.05, half_height: 0.025, round: 0.008 },
-                    Rot::IDENTITY,
-                    v3(0.0, hub_y, 0.0),
-                    LEGS,
-                ));
-                for i in 0..spokes {
-                    let (s, c) = (FRAC_PI_2 + TAU * i as f32 / spokes as f32).sin_cos();
-                    let end = v3(radius * c, 0.06, radius * s);
-                    prims.push(beam(
-                        v3(0.0, hub_y, 0.0),
-                        end,
-                        0.018,
-                        0.014,
-                        Some(v3(0.0, 1.0, 0.0).cross(v3(c, 0.0, s))),
-                        LEGS,
-                    ));
-                    prims.push(Prim::new(
-                        Shape::Sphere { radius: 0.03 },
-                        Rot::IDENTITY,
-                        v3(radius * c, 0.03, radius * s),
-                        LEGS,
-                    ));
-                }
-            }
-            Legs::Sled { cantilever } => {
-                let r = 0.45 * m;
-                let x = if round_seat { 0.7 * hw } else { hw - 1.5 * r };
-                let zf = if round_seat { 0.7 * hw } else { hd - r };
-                let top = yb - r;
-                for s in [-1.0, 1.0] {
-                    let x = s * x;
-                    if cantilever {
-                        let (front, back) = (v3(x, r, zf + 0.05), v3(x, r, -0.7 * zf));
-                        prims.push(rod(back, front, r, LEGS));
-                        prims.push(rod(front, v3(x, top, 0.85 * zf), r, LEGS));
-                        prims.push(rod(v3(x, top, 0.85 * zf), v3(x, top, -zf), r, LEGS));
-                    } else {
-                        let (front, back) = (v3(x, r, zf), v3(x, r, -zf));
-                        prims.push(rod(back, front, r, LEGS));
-                        prims.push(rod(front, v3(x, top, 0.8 * zf), r, LEGS));
-                        prims.push(rod(back, v3(x, top, -0.8 * zf), r, LEGS));
-                        prims.push(rod(v3(x, top, 0.8 * zf), v3(x, top, -0.8 * zf), r, LEGS));
-                    }
-                }
-                if cantilever {
-                    prims.push(rod(v3(-x, r, -0.7 * zf), v3(x, r, -0.7 * zf), r, LEGS));
-                }
-            }
-            Legs::Pedestal { block, base_radius } => {
-                if block {
-                    let (bx, bz) = if round_seat { (0.6 * hw, 0.6 * hw) } else { (0.8 * hw, 0.8 * hd) };
-                    prims.push(Prim::new(
-                        Shape::RoundBox { half: v3(bx, yb / 2.0, bz), round: 0.02 },
-                        Rot::IDENTITY,
-                        v3(0.0, yb / 2.0, 0.0),
-                        LEGS,
-                    ));
-                } else {
-                    let col = 0.04 + 0.15 * base_radius;
-                    prims.push(Prim::new(
-                        Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 },
-                        Rot::IDENTITY,
-                        v3(0.0, yb / 2.0, 0.0),
-                        LEGS,
-                    ));
-                    prims.push(Prim::new(
-                        Shape::Cylinder { radius: base_radius, half_height: 0.015, round: 0.01 },
-                        Rot::IDENTITY,
-                        v3(0.0, 0.015, 0.0),
-                        LEGS,
-                    ));
-                }
+            Legs::Swivel { spokes, radius } => swivel_base(prims, spokes, radius, yb),
+            Legs::Sled { cantilever } => self.sled(prims, cantilever, yb, hw, hd),
+            Legs::Pedestal { block, base_radius } => self.pedestal(prims, block, base_radius, yb, hw, hd),
+        }
+    }
+
+    /// The top of a leg at (`x`, `z`) under a seat at height `yb`, and its foot, splayed
+    /// outwards by `splay` × `yb`.
+    fn splayed(&self, x: f32, z: f32, splay: f32, yb: f32) -> (V3, V3) {
+        let out = v3(x, 0.0, z).normalized() * (splay * yb);
+        (v3(x, yb + self.member / 2.0, z), v3(x + out.x, 0.0, z + out.z))
+    }
+
+    /// Four corner legs, round or square, splayed, with stretchers between them if asked.
+    fn four_legs(
+        &self,
+        prims: &mut Vec<Prim>,
+        (splay, round, stretchers): (f32, bool, bool),
+        yb: f32,
+        hw: f32,
+        hd: f32,
+    ) {
+        let m = self.member;
+        let round_seat = self.seat == SeatShape::Round;
+        let corners: Vec<(f32, f32)> = if round_seat {
+            (0..4)
+                .map(|i| (TAU * (i as f32 + 0.5) / 4.0).sin_cos())
+                .map(|(s, c)| (0.7 * hw * c, 0.7 * hw * s))
+                .collect()
+        } else {
+            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+                .iter()
+                .map(|(a, b)| (a * (hw - 0.75 * m), b * (hd - 0.75 * m)))
+                .collect()
+        };
+        let legs: Vec<(V3, V3)> = corners.iter().map(|&(x, z)| self.splayed(x, z, splay, yb)).collect();
+        for &(top, foot) in &legs {
+            let foot = foot + v3(0.0, m / 2.0, 0.0);
+            prims.push(if round {
+                rod(top, foot, m / 2.0, LEGS)
+            } else {
+                beam(foot, top, m / 2.0, m / 2.0, None, LEGS)
+            });
+        }
+        if stretchers {
+            let f = 0.25;
+            let at = |(top, foot): (V3, V3)| foot + (top - foot) * f;
+            for i in 0..4 {
+                prims.push(rod(at(legs[i]), at(legs[(i + 1) % 4]), 0.35 * m, LEGS));
             }
         }
+    }
+
+    /// Two runners along the sides, closed into loops or (cantilever) open at the back.
+    fn sled(&self, prims: &mut Vec<Prim>, cantilever: bool, yb: f32, hw: f32, hd: f32) {
+        let m = self.member;
+        let round_seat = self.seat == SeatShape::Round;
+        let r = 0.45 * m;
+        let x = if round_seat { 0.7 * hw } else { hw - 1.5 * r };
+        let zf = if round_seat { 0.7 * hw } else { hd - r };
+        let top = yb - r;
+        for s in [-1.0, 1.0] {
+            let x = s * x;
+            if cantilever {
+                let (front, back) = (v3(x, r, zf + 0.05), v3(x, r, -0.7 * zf));
+                prims.push(rod(back, front, r, LEGS));
+                prims.push(rod(front, v3(x, top, 0.85 * zf), r, LEGS));
+                prims.push(rod(v3(x, top, 0.85 * zf), v3(x, top, -zf), r, LEGS));
+            } else {
+                let (front, back) = (v3(x, r, zf), v3(x, r, -zf));
+                prims.push(rod(back, front, r, LEGS));
+                prims.push(rod(front, v3(x, top, 0.8 * zf), r, LEGS));
+                prims.push(rod(back, v3(x, top, -0.8 * zf), r, LEGS));
+                prims.push(rod(v3(x, top, 0.8 * zf), v3(x, top, -0.8 * zf), r, LEGS));
+            }
+        }
+        if cantilever {
+            prims.push(rod(v3(-x, r, -0.7 * zf), v3(x, r, -0.7 * zf), r, LEGS));
+        }
+    }
+
+    /// A block under the seat, or a column on a round base.
+    fn pedestal(&self, prims: &mut Vec<Prim>, block: bool, base_radius: f32, yb: f32, hw: f32, hd: f32) {
+        let round_seat = self.seat == SeatShape::Round;
+        if block {
+            let (bx, bz) = if round_seat { (0.6 * hw, 0.6 * hw) } else { (0.8 * hw, 0.8 * hd) };
+            prims.push(Prim::new(
+                Shape::RoundBox { half: v3(bx, yb / 2.0, bz), round: 0.02 },
+                Rot::IDENTITY,
+                v3(0.0, yb / 2.0, 0.0),
+                LEGS,
+            ));
+        } else {
+            let col = 0.04 + 0.15 * base_radius;
+            prims.push(Prim::new(
+                Shape::Cylinder { radius: col, half_height: yb / 2.0, round: 0.0 },
+                Rot::IDENTITY,
+                v3(0.0, yb / 2.0, 0.0),
+                LEGS,
+            ));
+            prims.push(Prim::new(
+                Shape::Cylinder { radius: base_radius, half_height: 0.015, round: 0.01 },
+                Rot::IDENTITY,
+                v3(0.0, 0.015, 0.0),
+                LEGS,
+            ));
+        }
+    }
+}
+
+/// An office chair's base: a plate under the seat, the gas column and its sleeve, a hub and
+/// `spokes` spokes of `radius` ending in casters.
+fn swivel_base(prims: &mut Vec<Prim>, spokes: u32, radius: f32, yb: f32) {
+    let hub_y = 0.08;
+    prims.push(Prim::new(
+        Shape::RoundBox { half: v3(0.11, 0.015, 0.11), round: 0.005 },
+        Rot::IDENTITY,
+        v3(0.0, yb - 0.015, 0.0),
+        LEGS,
+    ));
+    let col_lo = hub_y;
+    prims.push(Prim::new(
+        Shape::Cylinder { radius: 0.022, half_height: (yb - col_lo) / 2.0, round: 0.0 },
+        Rot::IDENTITY,
+        v3(0.0, (yb + col_lo) / 2.0, 0.0),
+        LEGS,
+    ));
+    prims.push(Prim::new(
+        Shape::Cylinder { radius: 0.035, half_height: 0.08, round: 0.005 },
+        Rot::IDENTITY,
+        v3(0.0, hub_y + 0.08, 0.0),
+        LEGS,
+    ));
+    prims.push(Prim::new(
+        Shape::Cylinder { radius: 0.05, half_height: 0.025, round: 0.008 },
+        Rot::IDENTITY,
+        v3(0.0, hub_y, 0.0),
+        LEGS,
+    ));
+    for i in 0..spokes {
+        let (s, c) = (FRAC_PI_2 + TAU * i as f32 / spokes as f32).sin_cos();
+        let end = v3(radius * c, 0.06, radius * s);
+        prims.push(beam(v3(0.0, hub_y, 0.0), end, 0.018, 0.014, Some(v3(0.0, 1.0, 0.0).cross(v3(c, 0.0, s))), LEGS));
+        prims.push(Prim::new(Shape::Sphere { radius: 0.03 }, Rot::IDENTITY, v3(radius * c, 0.03, radius * s), LEGS));
     }
 }

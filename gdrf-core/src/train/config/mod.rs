@@ -160,6 +160,35 @@ impl TrainConfig {
         self.render.validate()?;
         self.loss.validate()?;
         crate::device::select_syntax(&self.device).map_err(|e| cfg_err(format!("device: {e}")))?;
+        self.validate_optimisation()?;
+        self.validate_schedule()?;
+        self.validate_latent_weight()?;
+        self.validate_eval()?;
+        self.validate_previews()?;
+        let g = &self.guard;
+        if g.rollback_after < 1 || !(g.lr_factor > 0.0 && g.lr_factor <= 1.0) || g.max_rollbacks < 0 {
+            return Err(cfg_err(format!(
+                "guard: rollback_after {} must be at least 1, lr_factor {} in (0, 1], max_rollbacks {} at least 0",
+                g.rollback_after, g.lr_factor, g.max_rollbacks
+            )));
+        }
+        if self.stages.is_empty() {
+            return Err(cfg_err("stages: at least one [[stages]] table is needed".into()));
+        }
+        if self.stages[0].from_step != 0 {
+            return Err(cfg_err(format!("stages[0].from_step is {}, expected 0", self.stages[0].from_step)));
+        }
+        for (i, st) in self.stages.iter().enumerate() {
+            self.validate_stage(i, st)?;
+        }
+        if let Some(synth) = &self.data.synth {
+            synth.validate().map_err(|e| cfg_err(format!("data.synth: {e}")))?;
+        }
+        Ok(())
+    }
+
+    /// `[optim]` and `[ema]`: positive rates, betas and decay in [0, 1).
+    fn validate_optimisation(&self) -> Result<()> {
         let o = &self.optim;
         for (k, v) in [("optim.g_lr", o.g_lr), ("optim.d_lr", o.d_lr), ("optim.eps", o.eps)] {
             if !(v > 0.0 && v.is_finite()) {
@@ -177,6 +206,11 @@ impl TrainConfig {
         if !(0.0..1.0).contains(&self.ema.decay) {
             return Err(cfg_err(format!("ema.decay is {}, expected a value in [0, 1)", self.ema.decay)));
         }
+        Ok(())
+    }
+
+    /// `[schedule]`'s step counts and intervals.
+    fn validate_schedule(&self) -> Result<()> {
         let s = &self.schedule;
         for (k, v) in [
             ("schedule.total_steps", s.total_steps),
@@ -191,6 +225,11 @@ impl TrainConfig {
         if s.keep_checkpoints < 1 {
             return Err(cfg_err("schedule.keep_checkpoints is 0, expected at least 1".into()));
         }
+        Ok(())
+    }
+
+    /// The latent-prediction weight, which needs a code no wider than the discriminator's head.
+    fn validate_latent_weight(&self) -> Result<()> {
         let lw = self.loss.latent_weight;
         if !(lw >= 0.0 && lw.is_finite()) {
             return Err(cfg_err(format!("loss.latent_weight is {lw}, expected 0 (off) or a positive weight")));
@@ -202,6 +241,11 @@ impl TrainConfig {
                 crate::disc::LATENT_DIM
             )));
         }
+        Ok(())
+    }
+
+    /// `[eval]`: sizes, seeds, and the probe an evaluation during training needs.
+    fn validate_eval(&self) -> Result<()> {
         let e = &self.eval;
         if e.interval < 0 || e.num < 2 || e.swap < 2 || e.samples < 2 {
             return Err(cfg_err(format!(
@@ -224,6 +268,12 @@ impl TrainConfig {
                 e.interval
             )));
         }
+        Ok(())
+    }
+
+    /// The previews: `schedule.sample_interval` and `[samples]`.
+    fn validate_previews(&self) -> Result<()> {
+        let s = &self.schedule;
         if s.sample_interval < 0 {
             return Err(cfg_err(format!(
                 "schedule.sample_interval is {}, expected 0 (never) or more",
@@ -237,96 +287,84 @@ impl TrainConfig {
                 sm.count, sm.swap
             )));
         }
-        let g = &self.guard;
-        if g.rollback_after < 1 || !(g.lr_factor > 0.0 && g.lr_factor <= 1.0) || g.max_rollbacks < 0 {
+        Ok(())
+    }
+
+    /// Stage `i` (`stages[i]`), after the one before it: its resolution, samples, batch and
+    /// split, bands, and learning rates, against the step kind, background and loss.
+    fn validate_stage(&self, i: usize, st: &Stage) -> Result<()> {
+        let key = |k: &str| format!("stages[{i}].{k}");
+        if i > 0 && st.from_step <= self.stages[i - 1].from_step {
             return Err(cfg_err(format!(
-                "guard: rollback_after {} must be at least 1, lr_factor {} in (0, 1], max_rollbacks {} at least 0",
-                g.rollback_after, g.lr_factor, g.max_rollbacks
+                "{} is {}, expected more than stages[{}].from_step ({})",
+                key("from_step"),
+                st.from_step,
+                i - 1,
+                self.stages[i - 1].from_step
             )));
         }
-        if self.stages.is_empty() {
-            return Err(cfg_err("stages: at least one [[stages]] table is needed".into()));
+        if !(8..=512).contains(&st.resolution) || st.resolution.count_ones() != 1 {
+            return Err(cfg_err(format!(
+                "{} is {}, expected a power of two from 8 to 512",
+                key("resolution"),
+                st.resolution
+            )));
         }
-        if self.stages[0].from_step != 0 {
-            return Err(cfg_err(format!("stages[0].from_step is {}, expected 0", self.stages[0].from_step)));
+        if st.num_steps < 3 {
+            return Err(cfg_err(format!("{} is {}, expected at least 3", key("num_steps"), st.num_steps)));
         }
-        for (i, st) in self.stages.iter().enumerate() {
-            let key = |k: &str| format!("stages[{i}].{k}");
-            if i > 0 && st.from_step <= self.stages[i - 1].from_step {
+        if st.batch_size < 1 || st.batch_split < 1 || st.batch_size % st.batch_split != 0 {
+            return Err(cfg_err(format!(
+                "{} is {} and {} is {}: expected positive values, the split dividing the batch",
+                key("batch_size"),
+                st.batch_size,
+                key("batch_split"),
+                st.batch_split
+            )));
+        }
+        if self.loss.diversity_weight > 0.0 && (st.batch_size / st.batch_split) % 2 != 0 {
+            return Err(cfg_err(format!(
+                "loss.diversity_weight is on but {} / {} is {}: the mode-seeking term needs an even number of images per chunk (pairs of codes)",
+                key("batch_size"),
+                key("batch_split"),
+                st.batch_size / st.batch_split
+            )));
+        }
+        if self.step == StepKind::OneRender && st.regions != 1 {
+            return Err(cfg_err(format!(
+                "step = \"one-render\" renders each image once with its graph, but {} is {}: the patch step needs step = \"two-render\"",
+                key("regions"),
+                st.regions
+            )));
+        }
+        if !self.generator.background.is_learned() && st.regions != 1 {
+            return Err(cfg_err(format!(
+                "generator.background = \"{}\" composites whole rendered images on random colours, but {} is {}: expected 1",
+                self.generator.background.name(),
+                key("regions"),
+                st.regions
+            )));
+        }
+        if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
+            return Err(cfg_err(format!(
+                "{} is {}, expected a positive divisor of the {}² rays",
+                key("regions"),
+                st.regions,
+                st.resolution
+            )));
+        }
+        if let Some(v) = st.g_lr {
+            if !(v >= 0.0 && v.is_finite()) {
                 return Err(cfg_err(format!(
-                    "{} is {}, expected more than stages[{}].from_step ({})",
-                    key("from_step"),
-                    st.from_step,
-                    i - 1,
-                    self.stages[i - 1].from_step
+                    "{} is {v}, expected a positive number (or 0: the discriminator trains alone)",
+                    key("g_lr")
                 )));
-            }
-            if !(8..=512).contains(&st.resolution) || st.resolution.count_ones() != 1 {
-                return Err(cfg_err(format!(
-                    "{} is {}, expected a power of two from 8 to 512",
-                    key("resolution"),
-                    st.resolution
-                )));
-            }
-            if st.num_steps < 3 {
-                return Err(cfg_err(format!("{} is {}, expected at least 3", key("num_steps"), st.num_steps)));
-            }
-            if st.batch_size < 1 || st.batch_split < 1 || st.batch_size % st.batch_split != 0 {
-                return Err(cfg_err(format!(
-                    "{} is {} and {} is {}: expected positive values, the split dividing the batch",
-                    key("batch_size"),
-                    st.batch_size,
-                    key("batch_split"),
-                    st.batch_split
-                )));
-            }
-            if self.loss.diversity_weight > 0.0 && (st.batch_size / st.batch_split) % 2 != 0 {
-                return Err(cfg_err(format!(
-                    "loss.diversity_weight is on but {} / {} is {}: the mode-seeking term needs an even number of images per chunk (pairs of codes)",
-                    key("batch_size"),
-                    key("batch_split"),
-                    st.batch_size / st.batch_split
-                )));
-            }
-            if self.step == StepKind::OneRender && st.regions != 1 {
-                return Err(cfg_err(format!(
-                    "step = \"one-render\" renders each image once with its graph, but {} is {}: the patch step needs step = \"two-render\"",
-                    key("regions"),
-                    st.regions
-                )));
-            }
-            if !self.generator.background.is_learned() && st.regions != 1 {
-                return Err(cfg_err(format!(
-                    "generator.background = \"{}\" composites whole rendered images on random colours, but {} is {}: expected 1",
-                    self.generator.background.name(),
-                    key("regions"),
-                    st.regions
-                )));
-            }
-            if st.regions < 1 || (st.resolution * st.resolution) % st.regions != 0 {
-                return Err(cfg_err(format!(
-                    "{} is {}, expected a positive divisor of the {}² rays",
-                    key("regions"),
-                    st.regions,
-                    st.resolution
-                )));
-            }
-            if let Some(v) = st.g_lr {
-                if !(v >= 0.0 && v.is_finite()) {
-                    return Err(cfg_err(format!(
-                        "{} is {v}, expected a positive number (or 0: the discriminator trains alone)",
-                        key("g_lr")
-                    )));
-                }
-            }
-            if let Some(v) = st.d_lr {
-                if !(v > 0.0 && v.is_finite()) {
-                    return Err(cfg_err(format!("{} is {v}, expected a positive number", key("d_lr"))));
-                }
             }
         }
-        if let Some(synth) = &self.data.synth {
-            synth.validate().map_err(|e| cfg_err(format!("data.synth: {e}")))?;
+        if let Some(v) = st.d_lr {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(cfg_err(format!("{} is {v}, expected a positive number", key("d_lr"))));
+            }
         }
         Ok(())
     }
