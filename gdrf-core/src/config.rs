@@ -315,54 +315,98 @@ impl CameraConfig {
     }
 }
 
-/// How rays are sampled and integrated.
+/// How rays are sampled and integrated. Under the `cli` feature its options are clap's
+/// flags (`gdrf-edit render`), named as their config keys (`render.shade_min_weight` is
+/// `--shade-min-weight`); the samples per ray come from the view flags, where the
+/// checkpoint's header gives their default, and the integration's constants are no flags.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::Args))]
 #[serde(default, deny_unknown_fields)]
 pub struct RenderConfig {
     /// Coarse samples per ray N (the importance pass adds N more).
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().num_steps))]
     pub num_steps: usize,
     /// Add N importance samples drawn from the coarse weights.
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().hierarchical))]
     pub hierarchical: bool,
     /// Stratified jitter of the coarse depths (the release always jitters).
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "no-jitter",
+            action = clap::ArgAction::SetFalse,
+            help = "Turn off the stratified jitter of the coarse samples (deterministic renders)"
+        )
+    )]
     pub jitter: bool,
     /// Composite on white: pixel += 1 − Σw.
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().white_back))]
     pub white_back: bool,
     /// Add the leftover transmittance to the last sample's weight.
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().last_back))]
     pub last_back: bool,
-    /// Paint the last sample white before integration (release render/FID scripts).
+    /// Paint the last sample white before integration (the authors' render and FID scripts
+    /// do).
+    #[cfg_attr(feature = "cli", arg(long))]
     pub force_last_white: bool,
     /// Length of the last interval.
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().delta_final))]
     pub delta_final: f64,
     /// Colour widening ε: c' = c(1 + 2ε) − ε.
+    #[cfg_attr(feature = "cli", arg(skip = RenderConfig::default().widen_eps))]
     pub widen_eps: f64,
-    /// Samples evaluated at once (rays are rendered in chunks of this many samples);
-    /// 0 = by device ([`Self::chunk_points_on`]): 16 384 on the CPU, where each
-    /// activation tensor then stays small enough (16 MB at 16 384 × 256 floats) for the
-    /// allocator to reuse instead of mapping fresh pages (40 % faster than 131 072 on a
-    /// 2-core CPU), and 1 048 576 on a GPU, where every chunk costs kernel launches (a
-    /// `chairs-tiny` training step on an H100 took 0.317 s in chunks of 16 384 and
-    /// 0.108 s in one chunk). Bounds inference memory; a training render keeps every
-    /// chunk's graph until the backward pass, so there only `batch_split` bounds memory.
+    /// Samples evaluated at once (`render.chunk_points`; rays are rendered in chunks of this
+    /// many samples); bounds memory. 0 = by device: 16 384 on the CPU (small chunks are
+    /// faster there), 1 048 576 on a GPU (fewer kernel launches).
+    ///
+    /// On the CPU each activation tensor then stays small enough (16 MB at 16 384 × 256
+    /// floats) for the allocator to reuse instead of mapping fresh pages (40 % faster than
+    /// 131 072 on a 2-core CPU); on a GPU every chunk costs kernel launches (a `chairs-tiny`
+    /// training step on an H100 took 0.317 s in chunks of 16 384 and 0.108 s in one chunk).
+    /// A training render keeps every chunk's graph until the backward pass, so there only
+    /// `batch_split` bounds memory.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = RenderConfig::default().chunk_points))]
     pub chunk_points: usize,
-    /// Inference (`render_image`) shades only the samples whose weight exceeds this
-    /// (density-first, see `render::staged`); 0 = every sample, the reference sampler.
+    /// Density-first (`render.shade_min_weight`; `--min-weight` is the same flag): inference
+    /// shades only samples whose weight exceeds this (the pixel moves by at most this ×
+    /// samples per ray; see `render::staged`); 0 shades every sample (the reference
+    /// sampler).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, alias = "min-weight", default_value_t = RenderConfig::default().shade_min_weight)
+    )]
     pub shade_min_weight: f64,
-    /// Inference only: early ray termination. Coarse samples are evaluated front to back
-    /// in four segments and a ray stops once its transmittance falls below this; samples
-    /// behind are not evaluated unless the final integration finds more light left there
-    /// than this, so a pixel moves by at most this much. 0 = off.
+    /// Early ray termination (`render.termination`; inference only): coarse samples are
+    /// evaluated front to back in four segments and a ray stops once its transmittance
+    /// falls below this; samples behind are not evaluated unless the final integration
+    /// finds more light left there than this, so no pixel moves by more than it. 0 = off.
+    #[cfg_attr(feature = "cli", arg(long, default_value_t = RenderConfig::default().termination))]
     pub termination: f64,
-    /// Inference only: rays whose coarse weights inside the ray sum to less than this get
-    /// no importance samples (nothing there for them to resolve; their integration is the
-    /// coarse one). 0 = off: every ray gets N.
+    /// Rays whose coarse samples find less than this much light inside the ray (their
+    /// coarse weights but the first and last) get no importance samples: nothing there for
+    /// them to resolve, their image is their coarse render (inference only). 0 = off: every
+    /// ray gets N. Config key `render.importance_skip`; `--skip-empty` is the same flag.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, alias = "skip-empty", default_value_t = RenderConfig::default().importance_skip)
+    )]
     pub importance_skip: f64,
-    /// Inference only: rays whose coarse weights inside the ray lie, to at least this
-    /// fraction, within three neighbouring coarse intervals get one importance sample in
-    /// `importance_stride` (their pdf is a narrow peak: a few samples resolve it). The
-    /// samples dropped are copies of the kept ones at zero distance, which add no light.
-    /// 0 = off.
+    /// Rays whose coarse weights lie, to at least this fraction, in three neighbouring
+    /// intervals (a single sharp surface: a few samples resolve it) evaluate only one
+    /// importance sample in `--importance-stride`; the samples dropped are copies of the kept
+    /// ones at zero distance, which add no light (inference only). 0 = off. Config key
+    /// `render.importance_concentration`; `--thin-concentrated` is the same flag.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, alias = "thin-concentrated", default_value_t = RenderConfig::default().importance_concentration)
+    )]
     pub importance_concentration: f64,
-    /// Of the importance samples of a concentrated ray, one in this many is evaluated.
+    /// One importance sample in this many is kept on concentrated rays
+    /// (`render.importance_stride`; `--thin-stride` is the same flag).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, alias = "thin-stride", default_value_t = RenderConfig::default().importance_stride)
+    )]
     pub importance_stride: usize,
 }
 

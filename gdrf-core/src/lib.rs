@@ -31,6 +31,7 @@ pub mod plot;
 pub mod pretrained;
 pub mod render;
 pub mod rng;
+pub mod stats;
 pub mod train;
 
 pub use config::{Background, CameraConfig, GeneratorConfig, PoseDistribution, RenderConfig};

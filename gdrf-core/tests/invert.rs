@@ -11,6 +11,7 @@ use gdrf_core::checkpoint::load_generator;
 use gdrf_core::edit::{generator_id, latents, Features};
 use gdrf_core::invert::{invert, render_at_pose, render_at_poses, InvertConfig, Start};
 use gdrf_core::render::occupancy::GridConfig;
+use gdrf_core::render::Grids;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::RenderConfig;
 use tch::{Device, Kind, Tensor};
@@ -115,7 +116,7 @@ fn the_occupancy_grid_option_renders_the_plain_image_and_inverts() {
     let rc = RenderConfig { num_steps: s, jitter: false, ..Default::default() };
     let r = Renderer::new(g, &cam, &rc).unwrap();
     let lat = latents(g, &truth, &truth, None);
-    let grid = r.grids().occupancy_grid(&lat.shape, GridConfig { resolution: 32, ..Default::default() }).unwrap();
+    let grid = Grids::new(&r).occupancy_grid(&lat.shape, GridConfig { resolution: 32, ..Default::default() }).unwrap();
     let occupied = f64::try_from(grid.occupied.to_kind(Kind::Float).mean(Kind::Float)).unwrap();
     // The collapsed shipped model keeps faint density almost everywhere: at the default
     // threshold most cells are occupied (measured: 92 %), and still not all.
@@ -330,8 +331,8 @@ fn sampling_only_the_occupied_cells_renders_the_plain_image_and_gradient() {
         let w = truth.w_s.copy().set_requires_grad(true);
         let lat = latents(g, &truth, &truth, None);
         let lat = gdrf_core::field::generator::Latents { shape: g.shape_from_w(&w, None), ..lat };
-        let grid =
-            grid.map(|gc| tch::no_grad(|| r.grids().occupancy_grid(&g.shape_from_w(&truth.w_s, None), gc)).unwrap());
+        let grid = grid
+            .map(|gc| tch::no_grad(|| Grids::new(&r).occupancy_grid(&g.shape_from_w(&truth.w_s, None), gc)).unwrap());
         let noise = Noise::midpoints(1, res * res, s as i64, Device::Cpu);
         let img = render_at_poses(&r, &lat, &poses, res, &noise, subset, grid.as_ref()).unwrap();
         (&img - &target).square().mean(Kind::Float).backward();

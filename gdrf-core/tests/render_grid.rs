@@ -11,6 +11,7 @@ use gdrf_core::checkpoint::{load_generator, LoadedGenerator};
 use gdrf_core::data::synth::{analytic::AnalyticField, sample_object, Category};
 use gdrf_core::eval::fidelity::psnr_of_mse;
 use gdrf_core::field::RadianceField;
+use gdrf_core::render::Grids;
 use gdrf_core::render::{GridConfig, Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
 use gdrf_core::{CameraConfig, Latents, RenderConfig};
@@ -55,7 +56,7 @@ fn the_grid_never_drops_a_dense_point() {
     let mut checked = 0;
     for i in 0..4 {
         let shape = tch::no_grad(|| g.shape_from_z(&z.narrow(0, i, 1), None));
-        let grid = r.grids().occupancy_grid(&shape, cfg).unwrap();
+        let grid = Grids::new(&r).occupancy_grid(&shape, cfg).unwrap();
         let frac = f64::try_from(grid.occupied.to_kind(Kind::Float).mean(Kind::Float)).unwrap();
         // Random points in the cube: every one denser than the threshold is in an occupied cell.
         let mut u = StepRng::new(5, i as u64, Purpose::EvalPoses, Kind::Float, Device::Cpu);
@@ -89,7 +90,7 @@ fn the_grid_of_an_analytic_chair_is_tight_and_never_drops_its_surface() {
         let rc = RenderConfig::default();
         let r = Renderer::new(&f, &cam, &rc).unwrap();
         let cfg = GridConfig::default();
-        let grid = r.grids().occupancy_grid(&f.latents(1).shape, cfg).unwrap();
+        let grid = Grids::new(&r).occupancy_grid(&f.latents(1).shape, cfg).unwrap();
         let frac = f64::try_from(grid.occupied.to_kind(Kind::Float).mean(Kind::Float)).unwrap();
         let mut u = StepRng::new(6, seed, Purpose::EvalPoses, Kind::Float, Device::Cpu);
         let x = (u.uniform(&[1, 100_000, 3]) * 2.0 - 1.0) * grid.half;
@@ -137,9 +138,9 @@ fn each_configuration_agrees_with_a_dense_reference_on_an_analytic_chair() {
     ] {
         let rc = RenderConfig { num_steps: 24, jitter: false, shade_min_weight: min_weight, ..Default::default() };
         let r = Renderer::new(&f, &cam, &rc).unwrap();
-        let g = grid.map(|cfg| r.grids().occupancy_grid(&lat.shape, cfg).unwrap());
+        let g = grid.map(|cfg| Grids::new(&r).occupancy_grid(&lat.shape, cfg).unwrap());
         let grids: Vec<_> = g.iter().collect();
-        let (img, (dq, cq)) = r.grids().render_image_in_grids(&lat, &poses, res, &stratified(24), &grids).unwrap();
+        let (img, (dq, cq)) = Grids::new(&r).render_image_in_grids(&lat, &poses, res, &stratified(24), &grids).unwrap();
         let p = psnr(&px(&img), &px(&dense));
         println!("{name}: {p:.1} dB, {dq} density and {cq} colour queries");
         assert!(p >= 45.0, "{name}: {p:.1} dB");
@@ -172,11 +173,12 @@ fn rendering_in_the_grid_stays_close_to_a_dense_reference() {
 
     let rc = RenderConfig { num_steps: 12, jitter: false, ..Default::default() };
     let r = Renderer::new(g, &cam, &rc).unwrap();
-    let plain = r.grids().render_image_in_grids(&lat, &poses, res, &mid(12), &[]).unwrap();
-    let grids: Vec<_> =
-        (0..2).map(|i| r.grids().occupancy_grid(&lat.shape.narrow(i, 1), GridConfig::default()).unwrap()).collect();
+    let plain = Grids::new(&r).render_image_in_grids(&lat, &poses, res, &mid(12), &[]).unwrap();
+    let grids: Vec<_> = (0..2)
+        .map(|i| Grids::new(&r).occupancy_grid(&lat.shape.narrow(i, 1), GridConfig::default()).unwrap())
+        .collect();
     let refs: Vec<_> = grids.iter().collect();
-    let in_grid = r.grids().render_image_in_grids(&lat, &poses, res, &mid(12), &refs).unwrap();
+    let in_grid = Grids::new(&r).render_image_in_grids(&lat, &poses, res, &mid(12), &refs).unwrap();
     let px = |i: &gdrf_core::render::Image| (&i.rgb + 1.0) * 0.5;
     let (p_plain, p_grid) = (psnr(&px(&plain.0), &px(&reference)), psnr(&px(&in_grid.0), &px(&reference)));
     let op_err = f64::try_from((&in_grid.0.opacity - &reference.opacity).abs().max()).unwrap();
@@ -356,8 +358,8 @@ fn a_coarse_to_fine_grid_keeps_the_flat_grids_cells_for_a_fraction_of_the_querie
         let shape = tch::no_grad(|| g.shape_from_z(&z.narrow(0, i, 1), None));
         let cfg = GridConfig { resolution: 64, ..GridConfig::default() };
         assert!(cfg.coarse_to_fine, "coarse to fine is the default build");
-        let fine = r.grids().occupancy_grid(&shape, cfg).unwrap();
-        let flat = r.grids().occupancy_grid(&shape, GridConfig { coarse_to_fine: false, ..cfg }).unwrap();
+        let fine = Grids::new(&r).occupancy_grid(&shape, cfg).unwrap();
+        let flat = Grids::new(&r).occupancy_grid(&shape, GridConfig { coarse_to_fine: false, ..cfg }).unwrap();
         let count = |t: &Tensor| i64::try_from(t.sum(Kind::Int64)).unwrap();
         let (n_fine, n_flat) = (count(&fine.occupied), count(&flat.occupied));
         let outside = count(&fine.occupied.logical_and(&flat.occupied.logical_not()));
@@ -431,9 +433,10 @@ fn the_automatic_grids_render_the_campaign_model_no_less_accurately() {
         for i in 0..2 {
             let (l, pose) = (lat.narrow(i, 1), poses.narrow(i, 1));
             let reference = dense_r.render_image(&l, &pose, res, &mid(256)).unwrap();
-            let (plain, (q_plain, _)) = r.grids().render_image_in_grids(&l, &pose, res, &mid(12), &[]).unwrap();
-            let grid = r.grids().occupancy_grid(&l.shape, cfg).unwrap();
-            let (in_grid, (q_grid, _)) = r.grids().render_image_in_grids(&l, &pose, res, &mid(12), &[&grid]).unwrap();
+            let (plain, (q_plain, _)) = Grids::new(&r).render_image_in_grids(&l, &pose, res, &mid(12), &[]).unwrap();
+            let grid = Grids::new(&r).occupancy_grid(&l.shape, cfg).unwrap();
+            let (in_grid, (q_grid, _)) =
+                Grids::new(&r).render_image_in_grids(&l, &pose, res, &mid(12), &[&grid]).unwrap();
             let (p_plain, p_grid) = (psnr(&px(&plain), &px(&reference)), psnr(&px(&in_grid), &px(&reference)));
             println!(
                 "{want}³ grid, code {i}: {p_grid:.1} dB with {q_grid} density queries, {p_plain:.1} dB with {q_plain} without"

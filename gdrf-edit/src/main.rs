@@ -9,6 +9,7 @@ use clap::{Args, Parser, Subcommand};
 use gdrf_core::camera::Poses;
 use gdrf_core::field::generator::FieldOptions;
 use gdrf_core::nn::mapping::seeded_randn;
+use gdrf_core::render::Grids;
 use gdrf_core::render::{Noise, OccupancyGrid, Renderer};
 use gdrf_core::{io, RenderConfig};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -77,48 +78,17 @@ struct RenderArgs {
     /// turntable's views are per seed.
     #[command(flatten)]
     view: gdrf_core::edit::view::ViewFlags,
-    /// Turn off the stratified jitter of the coarse samples (deterministic renders).
-    #[arg(long)]
-    no_jitter: bool,
-    /// Paint the last sample white (the authors' render and FID scripts do).
-    #[arg(long)]
-    force_last_white: bool,
     /// Run the networks' hidden layers in bfloat16 (integration stays float32). About 2×
     /// faster on GPUs and on CPUs with bfloat16 instructions (AVX512-BF16, AMX), slower
     /// elsewhere; it cost 0.7 dB against the dense reference in `gdrf-edit bench`.
     #[arg(long)]
     bf16: bool,
-    /// Density-first (config key `render.shade_min_weight`; `--min-weight` is the same flag):
-    /// shade only samples whose weight exceeds this (the pixel moves by at most this ×
-    /// samples per ray); 0 shades every sample (the reference sampler).
-    #[arg(long, alias = "min-weight", default_value_t = RenderConfig::default().shade_min_weight)]
-    shade_min_weight: f64,
     #[command(flatten)]
     grid: gdrf_core::edit::view::GridFlags,
-    /// Early ray termination (`render.termination`): a ray stops once its transmittance
-    /// falls below this; no pixel moves by more than it. 0 = off.
-    #[arg(long, default_value_t = RenderConfig::default().termination)]
-    termination: f64,
-    /// Rays whose coarse samples find less than this much light inside the ray get no
-    /// importance samples (their image is then their coarse render). 0 = off. Config key
-    /// `render.importance_skip`; `--skip-empty` is the same flag.
-    #[arg(long, alias = "skip-empty", default_value_t = RenderConfig::default().importance_skip)]
-    importance_skip: f64,
-    /// Rays whose coarse weights lie, to at least this fraction, in three neighbouring
-    /// intervals (a single sharp surface) evaluate only one importance sample in
-    /// `--importance-stride`. 0 = off. Config key `render.importance_concentration`;
-    /// `--thin-concentrated` is the same flag.
-    #[arg(long, alias = "thin-concentrated", default_value_t = RenderConfig::default().importance_concentration)]
-    importance_concentration: f64,
-    /// One importance sample in this many is kept on concentrated rays (`render.importance_stride`;
-    /// `--thin-stride` is the same flag).
-    #[arg(long, alias = "thin-stride", default_value_t = RenderConfig::default().importance_stride)]
-    importance_stride: usize,
-    /// Samples evaluated at once (`render.chunk_points`); bounds memory. 0 = by device:
-    /// 16 384 on the CPU (small chunks are faster there), 1 048 576 on a GPU (fewer kernel
-    /// launches).
-    #[arg(long, default_value_t = RenderConfig::default().chunk_points)]
-    chunk_points: usize,
+    /// What the renderer skips and how (the config's `[render]` keys as flags); the
+    /// samples per ray come from --samples.
+    #[command(flatten)]
+    render: RenderConfig,
     /// Output PNG (the grid of images).
     #[arg(long, short, default_value = "render.png")]
     out: PathBuf,
@@ -166,18 +136,7 @@ fn render(mut a: RenderArgs) -> Result<()> {
     let (model::Model { generator, camera, device: dev, learned, .. }, threads) = model::open(&a.model)?;
     a.view.settle(&learned);
     let resolution = a.view.res();
-    let config = RenderConfig {
-        num_steps: a.view.samples(),
-        jitter: !a.no_jitter,
-        force_last_white: a.force_last_white,
-        chunk_points: a.chunk_points,
-        shade_min_weight: a.shade_min_weight,
-        termination: a.termination,
-        importance_skip: a.importance_skip,
-        importance_concentration: a.importance_concentration,
-        importance_stride: a.importance_stride,
-        ..Default::default()
-    };
+    let config = RenderConfig { num_steps: a.view.samples(), ..a.render.clone() };
     let mut renderer = Renderer::new(&generator, &camera, &config)?;
     renderer.field = FieldOptions { compute_kind: a.bf16.then_some(Kind::BFloat16), ..a.view.field() };
 
@@ -210,14 +169,14 @@ fn render(mut a: RenderArgs) -> Result<()> {
         let lat = latents.narrow(i, 1);
         // The grid depends on the shape alone: one per seed, shared by its views.
         let grid = match grid_cfg {
-            Some(cfg) => Some(renderer.grids().occupancy_grid(&lat.shape, cfg).context("--grid")?),
+            Some(cfg) => Some(Grids::new(&renderer).occupancy_grid(&lat.shape, cfg).context("--grid")?),
             None => None,
         };
         let grids: Vec<&OccupancyGrid> = grid.iter().collect();
         for &v in &views {
             let poses = Poses::from_angles(&[v], Kind::Float, dev);
             let (img, _) =
-                renderer.grids().render_image_in_grids(&lat, &poses, resolution, &Noise::default(), &grids)?;
+                Grids::new(&renderer).render_image_in_grids(&lat, &poses, resolution, &Noise::default(), &grids)?;
             rgb.push(img.rgb);
             depth.push(img.depth);
             bar.inc(1);
@@ -283,8 +242,12 @@ mod tests {
         let d = RenderConfig::default();
         let a = render(&[]);
         assert_eq!(
-            (a.shade_min_weight, a.importance_skip, a.importance_concentration, a.importance_stride, a.chunk_points),
-            (d.shade_min_weight, d.importance_skip, d.importance_concentration, d.importance_stride, d.chunk_points)
+            (a.render.shade_min_weight, a.render.importance_skip, a.render.importance_concentration),
+            (d.shade_min_weight, d.importance_skip, d.importance_concentration)
+        );
+        assert_eq!(
+            (a.render.importance_stride, a.render.chunk_points, a.render.jitter, a.render.force_last_white),
+            (d.importance_stride, d.chunk_points, true, false)
         );
         for (new, old) in [
             ("--shade-min-weight", "--min-weight"),
@@ -293,13 +256,15 @@ mod tests {
         ] {
             let get = |flag: &str| {
                 let a = render(&[flag, "0.25"]);
-                (a.shade_min_weight, a.importance_skip, a.importance_concentration)
+                (a.render.shade_min_weight, a.render.importance_skip, a.render.importance_concentration)
             };
             assert_eq!(get(new), get(old), "{new} and {old}");
             assert_ne!(get(new), get("--termination"), "{new} sets something");
         }
-        assert_eq!(render(&["--importance-stride", "3"]).importance_stride, 3);
-        assert_eq!(render(&["--thin-stride", "3"]).importance_stride, 3);
+        assert_eq!(render(&["--importance-stride", "3"]).render.importance_stride, 3);
+        assert_eq!(render(&["--thin-stride", "3"]).render.importance_stride, 3);
+        assert!(!render(&["--no-jitter"]).render.jitter);
+        assert!(render(&["--force-last-white"]).render.force_last_white);
     }
 
     #[test]

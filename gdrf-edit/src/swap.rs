@@ -8,6 +8,7 @@ use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::edit::view::{GridFlags, ViewArgs};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
+use gdrf_core::render::Grids;
 use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::{io, Latents};
 use std::path::{Path, PathBuf};
@@ -102,7 +103,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     // One grid for the shape, shared by its views (density never depends on the appearance).
     let grid_cfg = a.grid.resolve((views.len() as i64 * pixels) as f64 * rc.samples_per_ray() as f64)?;
     let grid = match grid_cfg {
-        Some(cfg) => Some(renderer.grids().occupancy_grid(&lat.shape, cfg).context("--grid")?),
+        Some(cfg) => Some(Grids::new(&renderer).occupancy_grid(&lat.shape, cfg).context("--grid")?),
         None => None,
     };
     let grids: Vec<_> = grid.iter().collect();
@@ -110,7 +111,7 @@ pub fn swap(mut a: SwapArgs) -> Result<()> {
     for (k, &pose) in views.iter().enumerate() {
         let poses = Poses::from_angles(&[pose], Kind::Float, model.device);
         let noise = a.view.noise(k, pixels, model.device);
-        let (img, _) = renderer.grids().render_image_in_grids(&lat, &poses, a.view.res(), &noise, &grids)?;
+        let (img, _) = Grids::new(&renderer).render_image_in_grids(&lat, &poses, a.view.res(), &noise, &grids)?;
         let path = a.out.join(format!("frame-{k:03}.png"));
         io::save_png(&path, &io::to_rgb8(&img.rgb.get(0), false)?)
             .with_context(|| format!("writing {}", path.display()))?;

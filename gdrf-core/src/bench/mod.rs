@@ -24,16 +24,7 @@ pub mod render;
 #[cfg(feature = "cli")]
 pub mod step;
 
-/// Median of `v` (NaN for an empty slice).
-pub fn median(v: &[f64]) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    match s.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => s[n / 2],
-        n => 0.5 * (s[n / 2 - 1] + s[n / 2]),
-    }
-}
+pub use crate::stats::median;
 
 /// The process's peak resident memory so far in MB (Linux `VmHWM`; NaN elsewhere).
 pub fn peak_rss_mb() -> f64 {
@@ -180,17 +171,5 @@ impl<S: Serialize> Timings<S> {
         run_script("plot_bench.py", &[&json_path, &png])?;
         println!("wrote {} and {}", json_path.display(), png.display());
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn medians() {
-        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
-        assert!(median(&[]).is_nan());
     }
 }

@@ -11,6 +11,7 @@ use crate::field::generator::FieldOptions;
 use crate::field::RadianceField;
 use crate::nn::mapping::seeded_randn;
 use crate::paths::write_atomic;
+use crate::render::Grids;
 use crate::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
 use crate::{device, CameraConfig, Error, Latents, RenderConfig, Result};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -129,30 +130,12 @@ pub struct PyTorchRun {
 /// One renderer configuration.
 struct Setting {
     name: String,
-    steps: usize,
-    min_weight: f64,
-    termination: f64,
-    importance_skip: f64,
-    /// Concentration at which importance samples are thinned (0 = off), and the stride.
-    thin: (f64, usize),
+    /// What the renderer skips, and how many samples it places (no jitter: deterministic
+    /// renders).
+    render: RenderConfig,
     grid: Option<GridConfig>,
     /// The networks' hidden layers in bfloat16 (integration stays float32); the model only.
     bf16: bool,
-}
-impl Setting {
-    /// The renderer's config of this setting (no jitter: deterministic renders).
-    fn render_config(&self) -> RenderConfig {
-        RenderConfig {
-            num_steps: self.steps,
-            jitter: false,
-            shade_min_weight: self.min_weight,
-            termination: self.termination,
-            importance_skip: self.importance_skip,
-            importance_concentration: self.thin.0,
-            importance_stride: self.thin.1,
-            ..Default::default()
-        }
-    }
 }
 
 /// The release trains and renders with N = 36 at 64² and N = 64 at 128².
@@ -169,11 +152,15 @@ fn settings(res: i64) -> Vec<Setting> {
     // family, N, density-first threshold, termination, importance skip, grid
     let s = |family: &str, steps: usize, min_weight: f64, termination: f64, importance_skip: f64, grid: bool| Setting {
         name: format!("{family} N={steps}"),
-        steps,
-        min_weight,
-        termination,
-        importance_skip,
-        thin: (0.0, 1),
+        render: RenderConfig {
+            num_steps: steps,
+            jitter: false,
+            shade_min_weight: min_weight,
+            termination,
+            importance_skip,
+            importance_stride: 1,
+            ..Default::default()
+        },
         grid: grid.then(GridConfig::default),
         bf16: false,
     };
@@ -199,8 +186,13 @@ fn settings(res: i64) -> Vec<Setting> {
         s
     };
     let thin = |mut s: Setting, concentration: f64, stride: usize| {
-        s.name = format!("{}+thin/{stride}@{concentration} N={}", s.name.split(' ').next().unwrap_or(""), s.steps);
-        s.thin = (concentration, stride);
+        s.name = format!(
+            "{}+thin/{stride}@{concentration} N={}",
+            s.name.split(' ').next().unwrap_or(""),
+            s.render.num_steps
+        );
+        s.render.importance_concentration = concentration;
+        s.render.importance_stride = stride;
         s
     };
     vec![
@@ -359,28 +351,31 @@ fn run_scene<F: RadianceField>(
 ) -> Result<(Vec<Row>, Tensor)> {
     let (_, dev) = scene.fields[0].kind_device();
     let r = res * res;
-    let render_all = |rc: &RenderConfig,
-                      opts: FieldOptions,
-                      grids: &[Option<OccupancyGrid>]|
-     -> Result<(Image, (i64, i64))> {
-        let mut parts = Vec::new();
-        let (mut dq, mut cq) = (0, 0);
-        for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
-            let mut renderer = Renderer::new(*field, camera, rc)?;
-            renderer.field = opts;
-            let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
-            for &pose in poses {
-                let pose = Poses::from_angles(&[pose], Kind::Float, dev);
-                let (img, (d, c)) =
-                    renderer.grids().render_image_in_grids(lat, &pose, res, &noise(1, r, rc.num_steps, dev), &grid)?;
-                parts.push(img);
-                dq += d;
-                cq += c;
+    let render_all =
+        |rc: &RenderConfig, opts: FieldOptions, grids: &[Option<OccupancyGrid>]| -> Result<(Image, (i64, i64))> {
+            let mut parts = Vec::new();
+            let (mut dq, mut cq) = (0, 0);
+            for (i, (field, lat)) in scene.fields.iter().zip(&scene.latents).enumerate() {
+                let mut renderer = Renderer::new(*field, camera, rc)?;
+                renderer.field = opts;
+                let grid: Vec<&OccupancyGrid> = grids[i].iter().collect();
+                for &pose in poses {
+                    let pose = Poses::from_angles(&[pose], Kind::Float, dev);
+                    let (img, (d, c)) = Grids::new(&renderer).render_image_in_grids(
+                        lat,
+                        &pose,
+                        res,
+                        &noise(1, r, rc.num_steps, dev),
+                        &grid,
+                    )?;
+                    parts.push(img);
+                    dq += d;
+                    cq += c;
+                }
             }
-        }
-        let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
-        Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
-    };
+            let cat = |f: &dyn Fn(&Image) -> &Tensor| Tensor::cat(&parts.iter().map(f).collect::<Vec<_>>(), 0);
+            Ok((Image { rgb: cat(&|i| &i.rgb), depth: cat(&|i| &i.depth), opacity: cat(&|i| &i.opacity) }, (dq, cq)))
+        };
     let n_images = (scene.fields.len() * poses.len()) as f64;
     eprintln!("{} {res}²: dense reference (N={} + {}) …", scene.name, a.reference_steps, a.reference_steps);
     let dense_rc = RenderConfig { num_steps: a.reference_steps, jitter: false, ..Default::default() };
@@ -403,7 +398,7 @@ fn run_scene<F: RadianceField>(
     let mut rows = Vec::new();
     let mut reference_images = Tensor::zeros([0], (Kind::Float, dev));
     for s in &list {
-        let rc = s.render_config();
+        let rc = &s.render;
         let opts = FieldOptions { compute_kind: s.bf16.then_some(Kind::BFloat16), ..Default::default() };
         // Grids are built once per shape, timed apart from the renders that reuse them.
         let (grids, grid_ms, grid_queries) = match s.grid {
@@ -414,9 +409,9 @@ fn run_scene<F: RadianceField>(
                     .iter()
                     .zip(&scene.latents)
                     .map(|(f, l)| {
-                        let mut r = Renderer::new(*f, camera, &rc)?;
+                        let mut r = Renderer::new(*f, camera, rc)?;
                         r.field = opts;
-                        r.grids().occupancy_grid(&l.shape, cfg).map(Some)
+                        Grids::new(&r).occupancy_grid(&l.shape, cfg).map(Some)
                     })
                     .collect::<Result<Vec<_>>>()?;
                 let ms = 1000.0 * t.elapsed().as_secs_f64() / scene.fields.len() as f64;
@@ -429,7 +424,7 @@ fn run_scene<F: RadianceField>(
         let mut out = None;
         for rep in 0..=a.repeats {
             let t = Instant::now();
-            let o = render_all(&rc, opts, &grids)?;
+            let o = render_all(rc, opts, &grids)?;
             if rep > 0 {
                 times.push(1000.0 * t.elapsed().as_secs_f64() / n_images);
             }
@@ -444,12 +439,12 @@ fn run_scene<F: RadianceField>(
             scene: scene.name,
             resolution: res,
             config: s.name.clone(),
-            steps: s.steps,
-            min_weight: s.min_weight,
-            termination: s.termination,
-            importance_skip: s.importance_skip,
-            importance_concentration: s.thin.0,
-            importance_stride: s.thin.1,
+            steps: rc.num_steps,
+            min_weight: rc.shade_min_weight,
+            termination: rc.termination,
+            importance_skip: rc.importance_skip,
+            importance_concentration: rc.importance_concentration,
+            importance_stride: rc.importance_stride,
             bf16: s.bf16,
             grid: s.grid,
             ms_per_image: ms,

@@ -7,6 +7,7 @@
 use super::report::{score_rows, truncation_note, write};
 use super::result::{Calibrated, EvalResult};
 use crate::paths::write_atomic;
+use crate::stats::mean;
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::Path;
@@ -49,11 +50,6 @@ pub struct SeedSummary {
     pub scores: Vec<SeedSpread>,
     /// Wall time of the whole evaluation.
     pub seconds: f64,
-}
-
-/// NaN for no values.
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len() as f64
 }
 
 /// Sample standard deviation (n − 1); 0 for fewer than two values.
@@ -159,11 +155,9 @@ mod tests {
     use super::*;
 
     #[test]
-    fn sample_standard_deviation_and_mean() {
-        assert_eq!(mean(&[1.0, 2.0, 6.0]), 3.0);
+    fn sample_standard_deviation() {
         // Deviations −2, −1, 3: squares sum to 14, over n − 1 = 2 gives 7.
         assert_eq!(sd(&[1.0, 2.0, 6.0]), 7f64.sqrt());
         assert_eq!(sd(&[5.0]), 0.0);
-        assert!(mean(&[]).is_nan());
     }
 }

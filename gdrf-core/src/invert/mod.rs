@@ -39,6 +39,7 @@ use crate::pretrained::effnet::EfficientNetLite0;
 use crate::pretrained::lpips::Lpips;
 use crate::pretrained::perceptual::{self, EffnetPerceptual};
 use crate::render::occupancy::{GridConfig, OccupancyGrid};
+use crate::render::Grids;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::train::optim::Adam;
@@ -182,7 +183,9 @@ pub fn render_at_poses(
 ) -> Result<Tensor> {
     let mut rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
     let pixels = match grid {
-        Some(grid) if grid.cfg.cells_only => renderer.grids().render_in_cells(latents, &rays, grid, noise, subset)?,
+        Some(grid) if grid.cfg.cells_only => {
+            Grids::new(&renderer).render_in_cells(latents, &rays, grid, noise, subset)?
+        }
         _ => {
             if let Some(grid) = grid {
                 let end = renderer.camera.ray_end;
@@ -361,7 +364,7 @@ impl<'a> Inverter<'a> {
                 cells_only: cfg.grid_cells,
                 ..Default::default()
             };
-            self.grid = Some((step, renderer.grids().occupancy_grid(&shape, gc)?));
+            self.grid = Some((step, Grids::new(&renderer).occupancy_grid(&shape, gc)?));
         }
         let grid = self.grid.as_ref().map(|(_, grid)| grid);
         let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;

@@ -19,7 +19,11 @@ pub struct Grids<'r, 'a, F: RadianceField> {
     pub renderer: &'r Renderer<'a, F>,
 }
 
-impl<F: RadianceField> Grids<'_, '_, F> {
+impl<'r, 'a, F: RadianceField> Grids<'r, 'a, F> {
+    pub fn new(renderer: &'r Renderer<'a, F>) -> Self {
+        Self { renderer }
+    }
+
     /// [`Renderer::render_image`], each image inside its shape's occupancy grid when `grids`
     /// holds one per image (empty: no grid). Also returns the density and colour queries
     /// spent.

@@ -9,6 +9,7 @@ pub mod occupancy;
 pub mod rays;
 pub mod renderer;
 pub mod sampler;
+pub mod setup;
 pub mod staged;
 
 pub(crate) use composite::{background_share, on_background};
@@ -18,4 +19,5 @@ pub use occupancy::{GridChoice, GridConfig, OccupancyGrid, AUTO_GRID_SAMPLES};
 pub use rays::{assemble, assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
 pub use renderer::Renderer;
 pub use sampler::{Sampler, SamplerSpec, ShapeQuery};
+pub use setup::Setup;
 pub use staged::{ShapeSide, Staged};

@@ -1,7 +1,6 @@
 //! What a render takes and gives, per ray: the noise that places its samples, the shape
 //! side's density samples, the rendered rays (pixels, depths, weights), their colours and
 //! costs, and images.
-use super::sampler::gather_samples;
 use tch::Tensor;
 
 /// Uniform noise the renderer would otherwise draw itself. Given explicitly, renders are
@@ -158,4 +157,16 @@ pub fn assemble(bands: &[Tensor], res: i64) -> Tensor {
     let s = bands[0].size();
     let (b, c) = (s[0], s[2]);
     Tensor::cat(bands, 1).permute([0, 2, 1]).reshape([b, c, res, res])
+}
+
+/// Sorts samples along the last axis of `z: (B, R, S)`; returns the sorted depths and the
+/// permutation `(B, R, S)` to gather the samples' other quantities with.
+pub fn sort_depths(z: &Tensor) -> (Tensor, Tensor) {
+    z.sort(-1, false)
+}
+
+/// Gathers `values: (B, R, S, C)` along the sample axis with `idx: (B, R, S)`.
+pub fn gather_samples(values: &Tensor, idx: &Tensor) -> Tensor {
+    let c = values.size()[3];
+    values.gather(2, &idx.unsqueeze(-1).expand([-1, -1, -1, c], false), false)
 }

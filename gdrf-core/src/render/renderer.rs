@@ -5,10 +5,10 @@
 //! it: training batches and patches with gradients, chunked inference in bounded memory,
 //! the staged shape-side / re-shade path (`staged.rs`) and occupancy grids
 //! (`occupancy.rs`).
-use super::composite::{composite, CompositeOptions};
-use super::in_grid::Grids;
+use super::composite::composite;
+use super::rays::gather_samples;
 use super::rays::{assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
-use super::sampler::{gather_samples, SamplerSpec, ShapeQuery};
+use super::setup::Setup;
 use super::staged::Staged;
 use crate::camera::{Poses, Rays};
 use crate::config::{CameraConfig, RenderConfig};
@@ -19,61 +19,36 @@ use crate::{Error, Result};
 use tch::{Kind, Tensor};
 
 /// Renders a radiance field (the generator by default) with a camera and sampling
-/// configuration.
+/// configuration: samples, colours and composites, for training and in bounded memory.
+/// Its [`Setup`] (field, camera, config, field options) is reached through it
+/// (`renderer.field = …`).
 pub struct Renderer<'a, F: RadianceField = Generator> {
-    pub generator: &'a F,
-    pub camera: &'a CameraConfig,
-    pub config: &'a RenderConfig,
-    pub field: FieldOptions,
+    setup: Setup<'a, F>,
+}
+
+impl<'a, F: RadianceField> std::ops::Deref for Renderer<'a, F> {
+    type Target = Setup<'a, F>;
+    fn deref(&self) -> &Setup<'a, F> {
+        &self.setup
+    }
+}
+
+impl<F: RadianceField> std::ops::DerefMut for Renderer<'_, F> {
+    fn deref_mut(&mut self) -> &mut Self::Target {
+        &mut self.setup
+    }
 }
 
 impl<'a, F: RadianceField> Renderer<'a, F> {
+    /// The staged shape-side / re-shade path of this renderer.
+    pub fn staged(&self) -> Staged<'a, F> {
+        Staged { setup: self.setup }
+    }
+
     pub fn new(generator: &'a F, camera: &'a CameraConfig, config: &'a RenderConfig) -> Result<Self> {
         camera.validate()?;
         config.validate()?;
-        Ok(Self { generator, camera, config, field: FieldOptions::default() })
-    }
-
-    /// The samples of rays `(B, R, 3)` and their density (the shape side), placed by the
-    /// samplers the config and the rays call for ([`SamplerSpec::sample`]). Missing noise
-    /// is drawn from libtorch's generator.
-    pub fn sample(&self, shape: &Film, rays: &Rays, noise: &Noise) -> Result<RaySamples> {
-        SamplerSpec::new(self.config, self.camera).sample(&self.shape_query(shape), rays, noise)
-    }
-
-    /// The staged shape-side / re-shade path of this renderer.
-    pub fn staged(&self) -> Staged<'_, 'a, F> {
-        Staged { renderer: self }
-    }
-
-    /// Occupancy grids of this renderer's field and camera, and rendering inside them.
-    pub fn grids(&self) -> Grids<'_, 'a, F> {
-        Grids { renderer: self }
-    }
-
-    /// What samplers ask of the field: its shape side under `shape`.
-    pub fn shape_query<'s>(&'s self, shape: &'s Film) -> ShapeQuery<'s> {
-        ShapeQuery { field: self.generator, shape, options: self.field }
-    }
-
-    /// The config's integration, with the last sample painted white where the field does
-    /// not paint the background.
-    pub(crate) fn composite_options(&self) -> CompositeOptions {
-        let o: CompositeOptions = self.config.into();
-        CompositeOptions { force_last_white: o.force_last_white || !self.generator.paints_background(), ..o }
-    }
-
-    /// View directions fed to the colour branch for every sample: `(B, R·S, 3)`.
-    pub(crate) fn sample_dirs(&self, dirs: &Tensor, s: i64) -> Tensor {
-        let (b, r) = (dirs.size()[0], dirs.size()[1]);
-        let d = if self.camera.lock_view_dependence {
-            let locked = dirs.zeros_like();
-            let _ = locked.narrow(2, 2, 1).fill_(-1.0);
-            locked
-        } else {
-            dirs.shallow_clone()
-        };
-        d.unsqueeze(2).expand([b, r, s, 3], false).reshape([b, r * s, 3])
+        Ok(Self { setup: Setup { generator, camera, config, field: FieldOptions::default() } })
     }
 
     /// The field's second answer: colours `(B, R, S, 3)` of every sample, sorted by depth,
@@ -236,32 +211,6 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
             Ok(self.integrate(samples, &rays, &latents.appearance))
         })?;
         Ok(RenderedRays::join(parts))
-    }
-
-    /// Ray chunk length for `per_ray` samples per ray over `b` images.
-    pub(crate) fn chunk_rays(&self, per_ray: i64, b: i64, device: tch::Device) -> i64 {
-        (self.config.chunk_points_on(device) / (per_ray * b).max(1)).max(1)
-    }
-
-    /// Runs `f(start, len)` over consecutive ray ranges of about `chunk_points` samples
-    /// (`per_ray` samples per ray, all images of the batch), in ray order: the one chunk
-    /// loop of every bounded-memory render.
-    pub(crate) fn in_chunks<T>(
-        &self,
-        rays: &Rays,
-        per_ray: i64,
-        mut f: impl FnMut(i64, i64) -> Result<T>,
-    ) -> Result<Vec<T>> {
-        let (b, r) = (rays.dirs.size()[0], rays.num_rays());
-        let chunk = self.chunk_rays(per_ray, b, rays.dirs.device());
-        let mut parts = Vec::new();
-        let mut start = 0;
-        while start < r {
-            let len = chunk.min(r - start);
-            parts.push(f(start, len)?);
-            start += len;
-        }
-        Ok(parts)
     }
 
     /// Training render of `res × res` images split into `regions` horizontal bands rendered

@@ -7,7 +7,7 @@
 //! pixel changes by at most `min_weight · (skipped samples) · (1 + 2ε)`.
 use super::composite::composite;
 use super::rays::{Noise, RayColours};
-use super::renderer::Renderer;
+use super::setup::Setup;
 use crate::camera::Rays;
 use crate::field::RadianceField;
 use crate::nn::film::Film;
@@ -39,11 +39,11 @@ pub struct ShapeSide {
 }
 
 /// The staged path, a part of a renderer ([`Renderer::staged`]).
-pub struct Staged<'r, 'a, F: RadianceField> {
-    pub renderer: &'r Renderer<'a, F>,
+pub struct Staged<'a, F: RadianceField> {
+    pub setup: Setup<'a, F>,
 }
 
-impl<F: RadianceField> Staged<'_, '_, F> {
+impl<F: RadianceField> Staged<'_, F> {
     /// The density pass over rays `(B, R, 3)` (no gradients), keeping the samples whose
     /// weight exceeds `min_weight` (every sample when it is ≤ 0).
     pub fn shape_side(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<ShapeSide> {
@@ -51,7 +51,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
             return Err(Error::Invalid(format!("min_weight is {min_weight}, expected a finite weight threshold")));
         }
         tch::no_grad(|| {
-            let d = self.renderer.sample(shape, rays, noise)?;
+            let d = self.setup.sample(shape, rays, noise)?;
             let s = d.z.size();
             let (b, r, n) = (s[0], s[1], s[2]);
             // Integration without colour: the weights, opacity and depth of composite().
@@ -59,7 +59,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
                 &d.sigma.zeros_like().expand([b, r, n, 3], false),
                 &d.sigma,
                 &d.z.unsqueeze(-1),
-                &self.renderer.composite_options(),
+                &self.setup.composite_options(),
             );
             let w = c.weights.view([b * r * n]);
             let keep = if min_weight > 0.0 { w.gt(min_weight) } else { w.ones_like().to_kind(Kind::Bool) };
@@ -69,7 +69,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
                 None => keep,
             };
             let flat = keep.nonzero().view([-1]);
-            let dirs = self.renderer.sample_dirs(&rays.dirs, n).view([b * r * n, 3]);
+            let dirs = self.setup.sample_dirs(&rays.dirs, n).view([b * r * n, 3]);
             let feature = d.sorted_features();
             let f = feature.size()[3];
             Ok(ShapeSide {
@@ -92,7 +92,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
     /// Density-first rendering of rays `(B, R, 3)` in chunks of about `chunk_points`
     /// samples, shading only the samples whose weight exceeds `shade_min_weight`.
     pub(crate) fn render_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RayColours> {
-        let sides = self.shape_sides(&latents.shape, rays, noise, self.renderer.config.shade_min_weight)?;
+        let sides = self.shape_sides(&latents.shape, rays, noise, self.setup.config.shade_min_weight)?;
         let parts = sides
             .into_iter()
             .map(|side| {
@@ -112,7 +112,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
     /// that any image fits in bounded memory), to keep and shade with [`Self::shade_chunks`].
     pub fn shape_sides(&self, shape: &Film, rays: &Rays, noise: &Noise, min_weight: f64) -> Result<Vec<ShapeSide>> {
         let b = rays.dirs.size()[0];
-        self.renderer.in_chunks(rays, self.renderer.config.samples_per_ray() as i64, |start, len| {
+        self.setup.in_chunks(rays, self.setup.config.samples_per_ray() as i64, |start, len| {
             self.shape_side(shape, &rays.narrow(start, len), &noise.slice(0, b, start, len), min_weight)
         })
     }
@@ -133,7 +133,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
                 side.batch
             )));
         }
-        let o = self.renderer.composite_options();
+        let o = self.setup.composite_options();
         tch::no_grad(|| {
             let (kind, device) = (side.weights.kind(), side.weights.device());
             let mut rgb = Tensor::zeros([side.kept, 3], (kind, device));
@@ -145,7 +145,7 @@ impl<F: RadianceField> Staged<'_, '_, F> {
                 let feature = side.features.index_select(0, &sel).unsqueeze(0);
                 let dirs = side.dirs.index_select(0, &sel).unsqueeze(0);
                 let c = self
-                    .renderer
+                    .setup
                     .generator
                     .radiance(&feature, &dirs, &appearance.narrow(i, 1))
                     .squeeze_dim(0)

@@ -218,20 +218,12 @@ impl Evaluation {
             seed_start = Instant::now();
         }
         let summary = crate::eval::seeds::summarise(&results)?;
-        let mut times = std::mem::take(&mut self.step_seconds);
-        times.sort_by(f64::total_cmp);
+        let times = std::mem::take(&mut self.step_seconds);
         let point = curve::CurvePoint {
             step: t.progress.step,
             images_seen: t.progress.images_seen,
             train_seconds: t.progress.train_seconds,
-            step_seconds: (!times.is_empty()).then(|| {
-                let m = times.len() / 2;
-                if times.len() % 2 == 1 {
-                    times[m]
-                } else {
-                    0.5 * (times[m - 1] + times[m])
-                }
-            }),
+            step_seconds: (!times.is_empty()).then(|| crate::stats::median(&times)),
             eval_seconds: start.elapsed().as_secs_f64(),
             scores: &summary,
         };

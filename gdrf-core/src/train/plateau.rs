@@ -7,7 +7,7 @@
 //! the evaluations of the [`FLAT_STEPS`] before it by more than the score's noise: the
 //! median, over the whole curve, of how far the seeds of one evaluation lie apart. A gain
 //! smaller than two seeds of the same generator disagree by is not evidence of learning.
-use crate::bench::median;
+use crate::stats::{mean, median};
 use serde_json::Value;
 
 /// How long the curve must go without an improvement to count as flat, in steps.
@@ -34,10 +34,6 @@ fn per_seed(line: &Value, name: &str, key: &str) -> Option<Vec<f64>> {
         score[key].as_array()?.iter().map(|x| x.as_f64().filter(|x| x.is_finite())).collect::<Option<_>>()?;
     let cap = if key == "position" { 1.0 } else { f64::INFINITY };
     (!v.is_empty()).then(|| v.into_iter().map(|x| x.min(cap)).collect())
-}
-
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len() as f64
 }
 
 /// One evaluation's verdict.

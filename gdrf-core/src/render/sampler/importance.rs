@@ -1,9 +1,10 @@
 //! Importance (PDF) samples: N more depths per ray drawn from its coarse weights, as the
 //! release draws them, evaluated only where the [`ImportancePolicy`] says they are needed.
-use super::{gather_samples, merge, Placement, Sampler, ShapeQuery};
+use super::{merge, Placement, Sampler, ShapeQuery};
 use crate::camera::Rays;
 use crate::config::RenderConfig;
 use crate::render::composite::weights_from_density;
+use crate::render::rays::gather_samples;
 use crate::render::rays::{Noise, RaySamples};
 use crate::Result;
 use tch::{Kind, Tensor};

@@ -20,7 +20,7 @@ pub use importance::{importance_depths, sample_pdf, Importance, ImportancePolicy
 pub use stratified::{stratified_depths, stratified_in, OccupiedBounds, Stratified};
 pub use termination::{Terminating, SKIPPED_SIGMA};
 
-use super::rays::{Noise, RaySamples};
+use super::rays::{gather_samples, sort_depths, Noise, RaySamples};
 use crate::camera::Rays;
 use crate::config::{CameraConfig, RenderConfig};
 use crate::field::generator::FieldOptions;
@@ -229,16 +229,4 @@ fn jitter_noise(noise: &Noise, jitter: bool, rays: &Rays, samples: i64) -> Optio
             Some(Tensor::rand([b, r, samples], (rays.dirs.kind(), rays.dirs.device())))
         }
     }
-}
-
-/// Sorts samples along the last axis of `z: (B, R, S)`; returns the sorted depths and the
-/// permutation `(B, R, S)` to gather the samples' other quantities with.
-pub fn sort_depths(z: &Tensor) -> (Tensor, Tensor) {
-    z.sort(-1, false)
-}
-
-/// Gathers `values: (B, R, S, C)` along the sample axis with `idx: (B, R, S)`.
-pub fn gather_samples(values: &Tensor, idx: &Tensor) -> Tensor {
-    let c = values.size()[3];
-    values.gather(2, &idx.unsqueeze(-1).expand([-1, -1, -1, c], false), false)
 }

@@ -1,9 +1,10 @@
 //! Early ray termination (inference only): a placement's samples evaluated front to back,
 //! each ray stopping once little light is left for what lies behind.
 use super::importance::importance_uniforms;
-use super::{gather_samples, sort_depths, Placement, Sampler, ShapeQuery};
+use super::{Placement, Sampler, ShapeQuery};
 use crate::camera::Rays;
 use crate::render::composite::{transmittance, weights_from_density};
+use crate::render::rays::{gather_samples, sort_depths};
 use crate::render::rays::{Noise, RaySamples};
 use crate::Result;
 use tch::{Kind, Tensor};
