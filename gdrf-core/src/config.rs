@@ -358,18 +358,11 @@ pub struct RenderConfig {
     /// Samples evaluated at once (`render.chunk_points`; rays are rendered in chunks of this
     /// many samples); bounds memory. 0 = by device: 16 384 on the CPU (small chunks are
     /// faster there), 1 048 576 on a GPU (fewer kernel launches).
-    ///
-    /// On the CPU each activation tensor then stays small enough (16 MB at 16 384 × 256
-    /// floats) for the allocator to reuse instead of mapping fresh pages (40 % faster than
-    /// 131 072 on a 2-core CPU); on a GPU every chunk costs kernel launches (a `chairs-tiny`
-    /// training step on an H100 took 0.317 s in chunks of 16 384 and 0.108 s in one chunk).
-    /// A training render keeps every chunk's graph until the backward pass, so there only
-    /// `batch_split` bounds memory.
     #[cfg_attr(feature = "cli", arg(long, default_value_t = RenderConfig::default().chunk_points))]
     pub chunk_points: usize,
     /// Density-first (`render.shade_min_weight`; `--min-weight` is the same flag): inference
     /// shades only samples whose weight exceeds this (the pixel moves by at most this ×
-    /// samples per ray; see `render::staged`); 0 shades every sample (the reference
+    /// samples per ray); 0 shades every sample (the reference
     /// sampler).
     #[cfg_attr(
         feature = "cli",
@@ -433,7 +426,12 @@ impl Default for RenderConfig {
 
 impl RenderConfig {
     /// Samples per chunk on `device`: `chunk_points`, or for 0 the device's default
-    /// (16 384 on the CPU, 1 048 576 on a GPU).
+    /// (16 384 on the CPU, 1 048 576 on a GPU). On the CPU each activation tensor then
+    /// stays small enough (16 MB at 16 384 × 256 floats) for the allocator to reuse instead
+    /// of mapping fresh pages (40 % faster than 131 072 on a 2-core CPU); on a GPU every
+    /// chunk costs kernel launches (a `chairs-tiny` training step on an H100 took 0.317 s in
+    /// chunks of 16 384 and 0.108 s in one chunk). A training render keeps every chunk's
+    /// graph until the backward pass, so there only `batch_split` bounds memory.
     pub fn chunk_points_on(&self, device: tch::Device) -> i64 {
         match (self.chunk_points, device) {
             (0, tch::Device::Cpu) => 1 << 14,
