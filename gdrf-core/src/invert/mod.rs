@@ -184,7 +184,7 @@ pub fn render_at_poses(
     let mut rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
     let pixels = match grid {
         Some(grid) if grid.cfg.cells_only => {
-            Grids::new(&renderer).render_in_cells(latents, &rays, grid, noise, subset)?
+            Grids::new(renderer).render_in_cells(latents, &rays, grid, noise, subset)?
         }
         _ => {
             if let Some(grid) = grid {
