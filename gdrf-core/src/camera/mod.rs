@@ -1,5 +1,7 @@
 //! Camera poses, their distributions, look-at and ray generation (the release's pi-GAN
 //! conventions: camera on the unit sphere looking at the origin, OpenGL axes).
+pub mod patch;
+
 use crate::config::{CameraConfig, PoseDistribution};
 use crate::rng::{RandomSource, TorchRng};
 use std::f64::consts::PI;
@@ -231,9 +233,10 @@ impl Rays {
         Self::from_rotation(&cam2world_rotation(poses), &camera_origins(poses, 1.0), &dirs_cam)
     }
 
-    /// Rays from rotations `(B, 3, 3)`, centres `(B, 3)` and camera-space directions `(R, 3)`.
+    /// Rays from rotations `(B, 3, 3)`, centres `(B, 3)` and camera-space directions `(R, 3)`
+    /// shared by every image, or `(B, R, 3)`, each image its own (scaled patches).
     pub fn from_rotation(rot: &Tensor, origin: &Tensor, dirs_cam: &Tensor) -> Self {
-        let r = dirs_cam.size()[0];
+        let r = dirs_cam.size()[dirs_cam.dim() - 2];
         let dirs = dirs_cam.matmul(&rot.transpose(1, 2)); // (B, R, 3)
         let origins = origin.unsqueeze(1).expand([-1, r, 3], false);
         Self { origins, dirs, bounds: None, occupied: None }
