@@ -354,7 +354,7 @@ pub fn load_generator(path: &Path, device: Device, kind: Kind) -> Result<LoadedG
 ///
 /// When `b` was trained on from `a`, the straight line between them can keep what each
 /// does better (weight-space ensembling, "WiSE-FT"; Wortsman et al., CVPR 2022): the
-/// default chairs model before the campaign was such a blend (docs/training.md). Both must
+/// default chairs model before the campaign was such a blend (docs/campaign-log.md, "What kept codes apart on the CPU (measured)"). Both must
 /// share the generator config and, where both record one, the camera; `t` lies in [0, 1].
 ///
 /// `groups` gives the parameters under a name prefix their own weight (`template.trunk`

@@ -5,7 +5,7 @@
 //! names it.
 //!
 //! The inputs come from a fixed seed, so the suite runs the same corpus every time
-//! (`GDRF_FUZZ_CASES` per parser, default 150). The README's longer run sets
+//! (`GDRF_FUZZ_CASES` per parser, default 150). The longer run of docs/testing.md ("Reliability") sets
 //! `GDRF_FUZZ_CASES` higher and `GDRF_FUZZ_SEED` to a new seed. A failure is shrunk by
 //! proptest to a minimal list of mutations, printed with the parser's name.
 mod common;
@@ -291,7 +291,7 @@ fn dataset_folders() {
     let load = |p: &Path| {
         let mut opts = data::LoadOptions::new(8);
         (opts.cache, opts.threads) = (false, 1);
-        data::load(p.parent().unwrap(), &opts, &|| ()).map(drop).map_err(err_string)
+        data::load(p.parent().unwrap(), &opts, &|_| ()).map(drop).map_err(err_string)
     };
     fuzz("dataset (camera_param.json)", &d.join("camera_param.json"), poses, 64, 64, load);
     std::fs::write(d.join("camera_param.json"), poses).unwrap();

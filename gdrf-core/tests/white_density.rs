@@ -1,5 +1,5 @@
 //! scripts/white_density.py, the campaign's diagnostic of density painted the background's
-//! white (docs/training.md): its counts on an image whose answer is known, and on the
+//! white (docs/campaign-log.md, "Why structure falls short: density painted white"): its counts on an image whose answer is known, and on the
 //! shipped generator at thresholds that make every opaque pixel white, or none.
 mod common;
 

@@ -3,7 +3,7 @@
 //! that fails for lack of space, and a read-only run directory. Nothing that was saved is
 //! lost, no temporary file stays, and the resumed run goes on as if never stopped.
 //!
-//! The SIGKILL trials are also the many-trial command of the README's reliability section:
+//! The SIGKILL trials are also the many-trial command of docs/testing.md, "Reliability: nothing lost under faults":
 //! `GDRF_KILL_TRIALS=N` (default 10, two per kind of moment), `GDRF_KILL_SEED` (the kill
 //! moments' seed) and `GDRF_KILL_REPORT=FILE` (the counts as JSON) set it up.
 #[path = "../../gdrf-core/tests/common/mod.rs"]

@@ -1,7 +1,7 @@
 //! The sine of the SIREN layers. libtorch computes float32 `sin` and `cos` on the CPU with
 //! MKL's VML; SLEEF's AVX2 functions (which libtorch itself uses for its bfloat16 and half
 //! sines, and exports) take 0.8–1.4 ns an element where MKL takes 2.3–4.0 ns (one core of
-//! the project's AMD EPYC; README, "Benchmarks"). The SIREN layers' sines and their
+//! the project's AMD EPYC; docs/benchmarks.md, its paragraph "The sine"). The SIREN layers' sines and their
 //! derivatives were a fifth of a training step on the project's 2-core AMD EPYC, so float32
 //! CPU tensors go through SLEEF: the bridge in `sine.cpp`, an autograd function whose
 //! derivatives are each other's, so gradients of every order stay exact. Every other dtype

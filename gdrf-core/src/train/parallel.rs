@@ -17,7 +17,7 @@ use crate::{Error, Result};
 use tch::{Kind, Tensor};
 
 /// Bucket size of the gradient all-reduce: 4 MiB and more cost a third of 64 KiB buckets
-/// on chairs-tiny's tensors (`gdrf-bench allreduce`, README).
+/// on chairs-tiny's tensors (`gdrf-bench allreduce`, docs/benchmarks.md).
 pub(crate) const GRADIENT_BUCKET_BYTES: usize = 16 << 20;
 
 impl Trainer {
