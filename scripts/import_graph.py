@@ -22,7 +22,7 @@ SRC = ROOT / "gdrf-core" / "src"
 # The rooms from the bottom up: each may import only rooms before it. A room missing from
 # the tree is skipped; a room in the tree missing here is an error (add it where it belongs).
 ROOMS = [
-    "error", "paths", "rng", "stats", "device", "dist", "io", "plot", "config", "nn", "camera", "pretrained",
+    "error", "paths", "rng", "stats", "progress", "device", "dist", "io", "plot", "config", "nn", "camera", "pretrained",
     "field", "render", "checkpoint", "data", "disc", "loss", "mesh", "edit", "eval", "train",
     "invert", "bench",
 ]

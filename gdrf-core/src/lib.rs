@@ -29,6 +29,7 @@ pub mod nn;
 pub mod paths;
 pub mod plot;
 pub mod pretrained;
+pub mod progress;
 pub mod render;
 pub mod rng;
 pub mod stats;

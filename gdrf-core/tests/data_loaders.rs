@@ -17,7 +17,7 @@ fn opts(res: usize) -> LoadOptions {
 }
 
 fn load(dir: &Path, o: &LoadOptions) -> gdrf_core::Result<Dataset> {
-    data::load(dir, o, &|| {})
+    data::load(dir, o, &|_| {})
 }
 
 /// `(H, W, 3)` bytes of image `i` of a dataset.

@@ -39,13 +39,13 @@ fn same_seed_gives_byte_identical_datasets_for_any_thread_count() {
     for category in Category::ALL {
         let opts = small(category, 10);
         let (a, b, c) = (tmp.path("a"), tmp.path("b"), tmp.path("c"));
-        synth::generate(&a, &opts, 1, &|| {}).unwrap();
-        synth::generate(&b, &opts, 3, &|| {}).unwrap();
+        synth::generate(&a, &opts, 1, &|_| {}).unwrap();
+        synth::generate(&b, &opts, 3, &|_| {}).unwrap();
         assert_eq!(files(&a), files(&b), "{category:?}: images differ between 1 and 3 threads");
         for f in [data::METADATA_FILE, "camera_param.json"] {
             assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}");
         }
-        synth::generate(&c, &SynthOptions { seed: 6, ..opts }, 2, &|| {}).unwrap();
+        synth::generate(&c, &SynthOptions { seed: 6, ..opts }, 2, &|_| {}).unwrap();
         let (fa, fc) = (files(&a), files(&c));
         assert!(fa.iter().zip(&fc).all(|(x, y)| x.1 != y.1), "another seed must give other images");
         for d in [a, b, c] {
@@ -59,7 +59,7 @@ fn metadata_round_trips_and_regenerates_each_image() {
     let tmp = TempDir::new("synth-meta").unwrap();
     let dir = tmp.path("d");
     let opts = SynthOptions { views_per_object: 2, ..small(Category::Chairs, 8) };
-    let written = synth::generate(&dir, &opts, 2, &|| {}).unwrap();
+    let written = synth::generate(&dir, &opts, 2, &|_| {}).unwrap();
     let read = Metadata::load(&dir).unwrap();
     assert_eq!(written, read);
     assert_eq!(read.part_names, ["seat", "back", "legs", "arms"]);
@@ -127,7 +127,7 @@ fn recorded_poses_follow_the_camera_convention() {
     let tmp = TempDir::new("synth-pose").unwrap();
     let dir = tmp.path("d");
     let opts = SynthOptions { resolution: 64, ..small(Category::Chairs, 12) };
-    let meta = synth::generate(&dir, &opts, 2, &|| {}).unwrap();
+    let meta = synth::generate(&dir, &opts, 2, &|_| {}).unwrap();
     let radius = fit_radius(&opts.camera);
     let ro = RenderOptions { resolution: 64, supersample: 2, fov_deg: 50.0, shadows: false };
     for r in &meta.images {
@@ -183,7 +183,7 @@ fn recorded_poses_follow_the_camera_convention() {
 fn swaps_keep_the_shape_and_change_the_appearance() {
     let tmp = TempDir::new("synth-swap").unwrap();
     let dir = tmp.path("d");
-    let meta = synth::generate(&dir, &small(Category::Chairs, 6), 2, &|| {}).unwrap();
+    let meta = synth::generate(&dir, &small(Category::Chairs, 6), 2, &|_| {}).unwrap();
     // Shape i with appearance i is image i, byte for byte.
     for i in [0, 4] {
         let own = synth::render_swap(&meta, i, i, None, None, None).unwrap();
@@ -402,9 +402,9 @@ fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
         tmp.path("tables").display()
     );
     let cfg: DataConfig = toml::from_str(&toml_text).unwrap();
-    assert_eq!(cfg.prepare(2, &|| {}).unwrap(), Prepared::Generated);
-    assert_eq!(cfg.prepare(2, &|| {}).unwrap(), Prepared::Existing);
-    let ds = data::load(&cfg.path, &cfg.load_options(16, 2), &|| {}).unwrap();
+    assert_eq!(cfg.prepare(2, &|_| {}).unwrap(), Prepared::Generated);
+    assert_eq!(cfg.prepare(2, &|_| {}).unwrap(), Prepared::Existing);
+    let ds = data::load(&cfg.path, &cfg.load_options(16, 2), &|_| {}).unwrap();
     let meta = Metadata::load(&cfg.path).unwrap();
     let train: Vec<_> = meta.images.iter().filter(|r| r.split == Split::Train).collect();
     assert_eq!(ds.len(), train.len());
@@ -416,10 +416,10 @@ fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
     // Other options on disk are an error naming what differs, never a silent overwrite.
     let mut other = cfg.clone();
     other.synth.as_mut().unwrap().count = 13;
-    let e = other.prepare(2, &|| {}).unwrap_err().to_string();
+    let e = other.prepare(2, &|_| {}).unwrap_err().to_string();
     assert!(e.contains("count: 12 on disk vs 13 wanted"), "{e}");
     let held = LoadOptions { split: Some(Split::HeldOut), ..cfg.load_options(16, 2) };
-    match data::load(&cfg.path, &held, &|| {}) {
+    match data::load(&cfg.path, &held, &|_| {}) {
         Ok(h) => assert_eq!(h.len() + ds.len(), 12),
         Err(e) => assert!(e.to_string().contains("no images"), "{e}"),
     }
@@ -429,8 +429,8 @@ fn a_data_config_generates_on_first_use_and_loads_the_train_split() {
 fn regenerating_a_folder_leaves_exactly_the_new_dataset() {
     let tmp = TempDir::new("synth-regen").unwrap();
     let dir = tmp.path("d");
-    synth::generate(&dir, &small(Category::Chairs, 6), 2, &|| {}).unwrap();
-    let meta = synth::generate(&dir, &SynthOptions { seed: 1, ..small(Category::Tables, 3) }, 2, &|| {}).unwrap();
+    synth::generate(&dir, &small(Category::Chairs, 6), 2, &|_| {}).unwrap();
+    let meta = synth::generate(&dir, &SynthOptions { seed: 1, ..small(Category::Tables, 3) }, 2, &|_| {}).unwrap();
     let names: Vec<String> = files(&dir).into_iter().map(|f| format!("images/{}", f.0)).collect();
     assert_eq!(names, meta.images.iter().map(|r| r.file.clone()).collect::<Vec<_>>());
     assert_eq!(Metadata::load(&dir).unwrap().options.category, Category::Tables);

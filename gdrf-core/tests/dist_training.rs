@@ -89,7 +89,7 @@ fn train(dir: &Path, variant: &str, run: &str, group: Option<ProcessGroup>) -> T
     let cfg = TrainConfig::load(&config(dir, variant)).unwrap();
     let mut t = Trainer::new(cfg, &dir.join(run)).unwrap();
     t.set_threads(1);
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     if let Some(g) = group {
         t.join_group(g).unwrap();
     }

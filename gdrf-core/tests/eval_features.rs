@@ -87,8 +87,8 @@ fn chair_renders(tmp: &TempDir, n: usize) -> Tensor {
         seed: 11,
         ..Default::default()
     };
-    synth::generate(&dir, &opts, 2, &|| {}).unwrap();
-    gdata::load(&dir, &LoadOptions::new(128), &|| {}).unwrap().images()
+    synth::generate(&dir, &opts, 2, &|_| {}).unwrap();
+    gdata::load(&dir, &LoadOptions::new(128), &|_| {}).unwrap().images()
 }
 
 /// How many images have an ImageNet chair class among their top 5.

@@ -80,7 +80,7 @@ fn a_few_steps_write_checkpoints_metrics_previews_and_an_ema_export() {
     let dir = TempDir::new("train-few").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     let reports = run_steps(&mut t, 5);
     assert_eq!(reports.len(), 5);
     assert_eq!(t.progress().step, 5);
@@ -121,7 +121,7 @@ fn a_resumed_run_reproduces_the_uninterrupted_run_exactly() {
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.checkpoint_interval = 100;
     let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    a.prepare_data(&|| {}).unwrap();
+    a.prepare_data(&|_| {}).unwrap();
     let full = run_steps(&mut a, 6);
 
     let mut b = Trainer::new(cfg, &dir.path("b")).unwrap();
@@ -159,7 +159,7 @@ fn the_projected_discriminator_with_hinge_loss_augmentation_and_the_coverage_ter
     cfg.loss.coverage_candidates = 3;
     cfg.loss.coverage_resolution = 4;
     let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    a.prepare_data(&|| {}).unwrap();
+    a.prepare_data(&|_| {}).unwrap();
     let full = run_steps(&mut a, 4);
     for r in &full {
         let cov = r.g_terms.iter().find(|(k, _)| *k == "g_coverage").expect("a coverage term").1;
@@ -213,7 +213,7 @@ fn the_lazy_coverage_term_runs_every_kth_step_at_k_times_the_weight() {
     every.loss.coverage_resolution = 4;
     let lazy_cfg = TrainConfig { loss: LossConfig { coverage_interval: 2, ..every.loss.clone() }, ..every.clone() };
     let mut a = Trainer::new(every, &dir.path("every")).unwrap();
-    a.prepare_data(&|| {}).unwrap();
+    a.prepare_data(&|_| {}).unwrap();
     let first = run_steps(&mut a, 1).remove(0);
     let mut lazy = Trainer::new(lazy_cfg, &dir.path("lazy")).unwrap();
     let runs = run_steps(&mut lazy, 3);
@@ -235,7 +235,7 @@ fn a_nan_step_is_skipped_and_repeated_ones_roll_back_with_halved_rates() {
     let dir = TempDir::new("train-guard").unwrap();
     let cfg = tiny_config(&dir.0, "[debug]\ninject_nonfinite_steps = [1, 6, 7, 8]\n\n[guard]\nrollback_after = 3");
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     run_steps(&mut t, 1);
     let (g_before, d_before) = (params(t.generator_vars()), params(t.disc_vars()));
     let r = run_steps(&mut t, 1).remove(0);
@@ -264,7 +264,7 @@ fn stage_switch_fade_in_and_ema_happen_at_the_configured_steps() {
     let dir = TempDir::new("train-stages").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     let mut seen = Vec::new();
     for _ in 0..6 {
         let decay = t.ema().next_decay();
@@ -299,7 +299,7 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
     let mut cfg = tiny_config(&dir.0, "");
     cfg.stages[0].g_lr = Some(0.0);
     let mut t = Trainer::new(cfg, &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     let (g0, e0, d0) = (params(t.generator_vars()), params(t.ema_vars()), params(t.disc_vars()));
     let reports = run_steps(&mut t, 3);
     assert!(same_params(&params(t.generator_vars()), &g0), "the generator moved in a discriminator-only stage");
@@ -328,7 +328,7 @@ fn a_stage_with_g_lr_zero_trains_the_discriminator_alone() {
 fn a_non_finite_state_is_never_checkpointed() {
     let dir = TempDir::new("train-nan-ckpt").unwrap();
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     run_steps(&mut t, 2);
     // Every checkpoint file with its bytes: a save that wrote a new file or overwrote the
     // step's own checkpoint changes this.
@@ -372,7 +372,7 @@ fn one_render_equals_two_renders(name: &str, background: Background) {
     cfg.discriminator.augment = vec![Augmentation::Translation, Augmentation::Cutout];
     assert!(cfg.loss.r1_due(0));
     let mut two = Trainer::new(cfg.clone(), &dir.path("two")).unwrap();
-    two.prepare_data(&|| {}).unwrap();
+    two.prepare_data(&|_| {}).unwrap();
     cfg.step = gdrf_core::train::StepKind::OneRender;
     let mut one = Trainer::new(cfg, &dir.path("one")).unwrap();
     let d0 = params(one.disc_vars());
@@ -433,7 +433,7 @@ fn the_two_pass_patch_step_gives_the_single_pass_gradient() {
     cfg.stages[0].batch_size = 4;
     cfg.stages[0].batch_split = 2;
     let mut single = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    single.prepare_data(&|| {}).unwrap();
+    single.prepare_data(&|_| {}).unwrap();
     cfg.stages[0].regions = 4;
     let mut patched = Trainer::new(cfg, &dir.path("b")).unwrap();
     let la = single.generator_gradients_now().unwrap();
@@ -521,7 +521,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
 fn bfloat16_training_steps_stay_finite() {
     let dir = TempDir::new("train-bf16").unwrap();
     let mut t = Trainer::new(tiny_config(&dir.0, "precision = \"bfloat16\""), &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     for _ in 0..2 {
         let r = t.step().unwrap();
         assert!(!r.g_skipped && !r.d_skipped && r.g_total.is_finite() && r.d_total.is_finite(), "{r:?}");
@@ -535,7 +535,7 @@ fn a_run_continues_under_a_longer_schedule_but_not_with_other_networks() {
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.total_steps = 3;
     let mut t = Trainer::new(cfg.clone(), &dir.path("run")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
     let mut longer = cfg.clone();
     longer.schedule.total_steps = 5;
@@ -555,7 +555,7 @@ fn a_run_can_start_from_an_exported_generator() {
     let dir = TempDir::new("train-init").unwrap();
     let cfg = tiny_config(&dir.0, "");
     let mut a = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    a.prepare_data(&|| {}).unwrap();
+    a.prepare_data(&|_| {}).unwrap();
     run_steps(&mut a, 3);
     let export = dir.path("a").join(run::GENERATOR);
     let exported = load_generator(&export, Device::Cpu, Kind::Float).unwrap();
@@ -607,7 +607,7 @@ fn a_damaged_newest_checkpoint_is_passed_over() {
     let dir = TempDir::new("train-damaged").unwrap();
     let run_dir = dir.path("run");
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &run_dir).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     run_steps(&mut t, 4);
     drop(t);
     let list = run::list_checkpoints(&run_dir).unwrap();
@@ -679,7 +679,7 @@ fn a_run_directory_missing_its_config_metrics_or_samples_resumes() {
     let dir = TempDir::new("train-partial").unwrap();
     let run_dir = dir.path("run");
     let mut t = Trainer::new(tiny_config(&dir.0, ""), &run_dir).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     run_steps(&mut t, 4);
     drop(t);
     std::fs::remove_file(run_dir.join(run::CONFIG)).unwrap();
@@ -687,7 +687,7 @@ fn a_run_directory_missing_its_config_metrics_or_samples_resumes() {
     std::fs::remove_dir_all(run_dir.join(run::SAMPLES)).unwrap();
     let mut t = Trainer::resume(&run_dir, None).unwrap();
     assert_eq!(t.progress().step, 4);
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     run_steps(&mut t, 2);
     let steps: Vec<i64> = run::read_metrics(&run_dir).unwrap().iter().filter_map(|l| l["step"].as_i64()).collect();
     assert_eq!(steps, [4, 5]);
@@ -778,7 +778,7 @@ fn a_run_switches_to_random_backgrounds_and_resumes_exactly() {
     cfg.schedule.total_steps = 2;
     cfg.schedule.checkpoint_interval = 100;
     let mut t = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    t.prepare_data(&|| {}).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
     assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
     drop(t);
     copy_dir(&dir.path("a"), &dir.path("b"));

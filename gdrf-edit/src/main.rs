@@ -12,7 +12,6 @@ use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::Grids;
 use gdrf_core::render::{Noise, OccupancyGrid, Renderer};
 use gdrf_core::{io, RenderConfig};
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::time::Instant;
 use tch::{Kind, Tensor};
@@ -154,12 +153,8 @@ fn render(mut a: RenderArgs) -> Result<()> {
 
     let views = a.view.turntable(&camera);
     let total = a.seeds.len() * views.len();
-    let bar = ProgressBar::new(total as u64).with_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} images, {elapsed} elapsed, eta {eta}")
-            .unwrap()
-            .progress_chars("=> "),
-    );
-    bar.set_message(format!("rendering {}×{}", resolution, resolution));
+    let bar = gdrf_core::progress::bar(total as u64, "images", false);
+    bar.set_prefix(format!("rendering {}×{}", resolution, resolution));
     let start = Instant::now();
     let mut rgb = Vec::with_capacity(total);
     let mut depth = Vec::with_capacity(total);

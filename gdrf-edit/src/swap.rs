@@ -6,11 +6,12 @@ use crate::model::{open, resolve, ModelArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{Poses, Rays};
+use gdrf_core::edit::matrix::MatrixView;
 use gdrf_core::edit::view::{GridFlags, ViewArgs};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate, Source};
+use gdrf_core::io;
 use gdrf_core::render::Grids;
-use gdrf_core::render::{Noise, Renderer};
-use gdrf_core::{io, Latents};
+use gdrf_core::render::Renderer;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tch::{Kind, Tensor};
@@ -28,7 +29,7 @@ pub struct SwapArgs {
     #[command(flatten)]
     view: ViewArgs,
     /// Output folder: frame-NNN.png per view, strip.png with all views and, for more than
-    /// one view, swap.gif.
+    /// one view, sequence.gif.
     #[arg(long, short, default_value = "swap")]
     out: PathBuf,
     /// Write into an output folder that already holds files.
@@ -185,51 +186,8 @@ pub fn matrix(mut a: MatrixArgs) -> Result<()> {
     Ok(())
 }
 
-/// One view of a swap matrix: every (shape, appearance) pair of `features`.
-pub struct MatrixView<'a> {
-    pub renderer: &'a Renderer<'a>,
-    pub features: &'a [Features],
-    pub poses: &'a Poses,
-    pub res: i64,
-    pub noise: &'a Noise,
-    pub trunc: Option<&'a gdrf_core::field::generator::Truncation>,
-}
-
-impl MatrixView<'_> {
-    /// Cells `(1, 3, res, res)` in row-major order, each rendered in full.
-    pub fn full(&self) -> Result<Vec<Tensor>> {
-        let g = self.renderer.generator;
-        let mut cells = Vec::new();
-        for shape in self.features {
-            for app in self.features {
-                let lat = latents(g, shape, app, self.trunc);
-                cells.push(self.renderer.render_image(&lat, self.poses, self.res, self.noise)?.rgb);
-            }
-        }
-        Ok(cells)
-    }
-
-    /// The same cells with each row's shape side computed once and re-shaded per appearance.
-    pub fn cached(&self) -> Result<Vec<Tensor>> {
-        let (renderer, g, res) = (self.renderer, self.renderer.generator, self.res);
-        let rays = Rays::from_poses(self.poses, res, renderer.camera.fov_deg);
-        let mut cells = Vec::new();
-        for shape in self.features {
-            let shape_film = latents(g, shape, shape, self.trunc).shape;
-            let sides =
-                renderer.staged().shape_sides(&shape_film, &rays, self.noise, renderer.config.shade_min_weight)?;
-            for app in self.features {
-                let Latents { appearance, .. } = latents(g, shape, app, self.trunc);
-                let pixel = renderer.staged().shade_chunks(&sides, &appearance)?;
-                cells.push(pixel.permute([0, 2, 1]).reshape([1, 3, res, res]) * 2.0 - 1.0);
-            }
-        }
-        Ok(cells)
-    }
-}
-
-/// strip.png with every frame `(1, 3, H, W)` in a row and, for more than one, an animated
-/// GIF named after the folder's purpose.
+/// strip.png with every frame `(1, 3, H, W)` in a row and, for more than one, the animated
+/// sequence.gif.
 fn write_sequence(dir: &Path, frames: &[Tensor]) -> Result<()> {
     let strip = io::grid(&Tensor::cat(frames, 0), frames.len() as i64);
     io::save_png(&dir.join("strip.png"), &io::to_rgb8(&strip, false)?)?;

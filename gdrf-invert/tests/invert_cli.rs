@@ -67,7 +67,7 @@ fn bench_dataset(dir: &TempDir) -> std::path::PathBuf {
         shadows: false,
         ..Default::default()
     };
-    gdrf_core::data::synth::generate(&data, &opts, 2, &|| {}).unwrap();
+    gdrf_core::data::synth::generate(&data, &opts, 2, &|_| {}).unwrap();
     data
 }
 

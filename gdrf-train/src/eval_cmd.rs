@@ -9,6 +9,7 @@ use gdrf_core::eval::probe::{self, Backbone, Probe, ProbeConfig, FACTORS};
 use gdrf_core::eval::report;
 use gdrf_core::eval::seeds;
 use gdrf_core::pretrained::effnet::EfficientNetLite0;
+use gdrf_core::progress;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -154,8 +155,8 @@ fn train_probe(a: TrainProbeArgs) -> Result<()> {
     let device = setup(&a.common)?;
     let out = a.out.clone().unwrap_or_else(|| a.dataset.join(format!("probe-{}.safetensors", a.backbone)));
     let start = Instant::now();
-    let pb = super::bar(0, "loading the dataset");
-    let data = probe::load_labelled(&a.dataset, 64, a.common.threads, &|| pb.inc(1))
+    let pb = progress::bar(0, "images", false);
+    let data = probe::load_labelled(&a.dataset, 64, a.common.threads, &|e| progress::follow(&pb, e))
         .with_context(|| format!("loading {} with its ground truth", a.dataset.display()))?;
     pb.finish_and_clear();
     let (train_x, train_t, _) = data.split(Split::Train, (a.limit > 0).then_some(a.limit));
@@ -168,18 +169,19 @@ fn train_probe(a: TrainProbeArgs) -> Result<()> {
         Backbone::Scratch => None,
     };
     let n = train_x.size()[0] + held_x.size()[0];
-    let pb = super::bar(n as usize, "probe inputs");
-    let train_in = probe::probe_inputs(backbone, net.as_ref(), &train_x, 32, &mut |i| pb.set_position(i as u64))?;
-    let done = train_x.size()[0];
-    let held_in =
-        probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |i| pb.set_position((done + i) as u64))?;
+    let pb = progress::bar(n as u64, "images", false);
+    pb.set_prefix("probe inputs");
+    let done = train_x.size()[0] as u64;
+    let train_in = probe::probe_inputs(backbone, net.as_ref(), &train_x, 32, &mut |e| pb.set_position(e.done))?;
+    let held_in = probe::probe_inputs(backbone, net.as_ref(), &held_x, 32, &mut |e| pb.set_position(done + e.done))?;
     pb.finish_and_clear();
     let prep = start.elapsed().as_secs_f64();
     let cfg = ProbeConfig { backbone, epochs: a.epochs, batch_size: a.batch_size, lr: a.lr, seed: a.seed };
-    let pb = super::bar(a.epochs, "training the probe");
+    let pb = progress::bar(a.epochs as u64, "epochs", false);
+    pb.set_prefix("training the probe");
     let probe = Probe::train(&cfg, (&train_in, &train_t), (&held_in, &held_t), device, &mut |e, loss| {
         pb.set_position(e as u64);
-        pb.set_message(format!("training the probe (loss {loss:.3})"));
+        pb.set_message(format!("(loss {loss:.3})"));
     })?;
     pb.finish_and_clear();
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -240,13 +242,9 @@ fn run(a: RunArgs) -> Result<()> {
     if let Some(dup) = a.seeds.iter().enumerate().find_map(|(i, s)| a.seeds[..i].contains(s).then_some(s)) {
         bail!("--seeds lists seed {dup} twice; expected distinct seeds, e.g. 0,1,2");
     }
-    let pb = super::bar(0, "evaluating");
+    let pb = progress::bar(0, "", false);
     let start = Instant::now();
-    let mut progress = |stage: &str, done: i64, total: i64| {
-        pb.set_length(total as u64);
-        pb.set_position(done as u64);
-        pb.set_message(stage.to_string());
-    };
+    let mut progress = |e: progress::Event| progress::follow(&pb, e);
     if !a.seeds.is_empty() {
         let results =
             evaluator::evaluate_seeds(generator, dataset, probe_path, &opts, &a.seeds, device, &mut progress)?;

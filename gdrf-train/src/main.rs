@@ -11,7 +11,7 @@ use gdrf_core::config::CameraPreset;
 use gdrf_core::data::layouts::Layout;
 use gdrf_core::data::synth::{self, Category, SynthOptions};
 use gdrf_core::data::{self, CacheStatus, DataConfig, LoadOptions, Metadata, Prepared};
-use indicatif::{ProgressBar, ProgressStyle};
+use gdrf_core::progress;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -337,17 +337,6 @@ fn dataset(cmd: DatasetCommand) -> Result<()> {
     }
 }
 
-fn bar(n: usize, what: &str) -> ProgressBar {
-    let pb = ProgressBar::new(n as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
-            .expect("static template")
-            .progress_chars("=> "),
-    );
-    pb.set_message(what.to_string());
-    pb
-}
-
 fn synth_cmd(a: SynthArgs) -> Result<()> {
     if a.out.join(data::METADATA_FILE).exists() && !a.force {
         bail!("{} already holds a dataset (metadata.json); pass --force to replace it", a.out.display());
@@ -366,9 +355,9 @@ fn synth_cmd(a: SynthArgs) -> Result<()> {
     };
     opts.validate().context("invalid `dataset synth` options")?;
     let threads = data::thread_count(a.threads);
-    let pb = bar(a.count, &format!("rendering {} ({threads} threads)", a.category.name()));
+    let pb = progress::bar(a.count as u64, "images", false);
     let start = Instant::now();
-    let meta = synth::generate(&a.out, &opts, threads, &|| pb.inc(1))?;
+    let meta = synth::generate(&a.out, &opts, threads, &|e| progress::follow(&pb, e))?;
     pb.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     let held = meta.images.iter().filter(|r| r.split == data::Split::HeldOut).count();
@@ -396,7 +385,7 @@ fn write_contact_sheet(dir: &Path, layout: Layout, res: usize, out: &Path) -> Re
     let mut opts = LoadOptions::new(res);
     opts.layout = layout;
     opts.cache = false;
-    let ds = data::load(dir, &opts, &|| {})?;
+    let ds = data::load(dir, &opts, &|_| {})?;
     save_sheet(&ds, out)
 }
 
@@ -445,13 +434,10 @@ fn inspect_cmd(a: InspectArgs) -> Result<()> {
 
 /// Loads with a progress bar and prints what was loaded, skipped and how fast.
 fn load_reporting(dir: &Path, opts: &LoadOptions) -> Result<data::Dataset> {
-    let pb = ProgressBar::new_spinner();
-    pb.set_style(ProgressStyle::with_template("{spinner} decoding {pos} images ({per_sec})").expect("static template"));
+    let pb = progress::bar(0, "images", false);
     let start = Instant::now();
-    let ds = data::load(dir, opts, &|| {
-        pb.inc(1);
-    })
-    .with_context(|| format!("loading {}", dir.display()))?;
+    let ds =
+        data::load(dir, opts, &|e| progress::follow(&pb, e)).with_context(|| format!("loading {}", dir.display()))?;
     pb.finish_and_clear();
     let secs = start.elapsed().as_secs_f64();
     for s in &ds.skipped {
@@ -497,8 +483,8 @@ fn prepare_cmd(a: PrepareArgs) -> Result<()> {
     data_cfg.poses = data_cfg.poses.map(|p| base.join(p));
     data_cfg.cache_dir = data_cfg.cache_dir.map(|p| base.join(p));
     let count = data_cfg.synth.as_ref().map_or(0, |s| s.count);
-    let pb = bar(count, "generating");
-    let prepared = data_cfg.prepare(a.threads, &|| pb.inc(1))?;
+    let pb = progress::bar(count as u64, "images", false);
+    let prepared = data_cfg.prepare(a.threads, &|e| progress::follow(&pb, e))?;
     pb.finish_and_clear();
     if prepared == Prepared::Generated {
         println!("generated the synthetic dataset in {}", data_cfg.path.display());

@@ -74,7 +74,7 @@ pub fn plot(a: PlotArgs) -> Result<()> {
                 .collect(),
         })
         .collect();
-    let img = draw_panels(&panels, 4, 360, 240);
+    let img = draw_panels(&panels, 4, 360, 240)?;
     let out = a.out.unwrap_or_else(|| a.run_dir.join("losses.png"));
     gdrf_core::io::save_png(&out, &img)?;
     println!("wrote {} ({} logged steps, moving average over {})", out.display(), records.len(), a.smooth);

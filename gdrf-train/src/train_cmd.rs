@@ -2,9 +2,9 @@
 //! handling, progress display and signals around [`gdrf_core::train::Trainer::run`].
 use anyhow::{bail, Context, Result};
 use clap::Args;
+use gdrf_core::progress;
 use gdrf_core::train::config::{cpu_has_bf16, Precision};
 use gdrf_core::train::{run, samples, Progress, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -283,13 +283,16 @@ fn stop_on_signals() -> Result<Arc<AtomicBool>> {
 /// while the others wait, then they find it finished: two generators rewriting the same
 /// PNGs let a rank read an image another was still writing (seen as "empty file").
 fn prepare_data(trainer: &Trainer, rank: Option<&gdrf_core::dist::Launch>, writer: bool) -> Result<()> {
-    let gen_bar = if writer { ProgressBar::new_spinner() } else { ProgressBar::hidden() };
+    let gen_bar = progress::bar(0, "images", !writer);
     let first_here = rank.is_none_or(|l| l.local_rank == 0);
-    let prepared =
-        if first_here { trainer.prepare_data(&|| gen_bar.inc(1))? } else { gdrf_core::data::Prepared::Existing };
+    let prepared = if first_here {
+        trainer.prepare_data(&|e| progress::follow(&gen_bar, e))?
+    } else {
+        gdrf_core::data::Prepared::Existing
+    };
     trainer.barrier()?;
     if !first_here {
-        trainer.prepare_data(&|| {})?;
+        trainer.prepare_data(&|_| {})?;
     }
     gen_bar.finish_and_clear();
     if writer && prepared == gdrf_core::data::Prepared::Generated {
@@ -339,12 +342,7 @@ fn announce(trainer: &mut Trainer, threads: usize, writer: bool) -> Result<()> {
 /// Trains under a progress bar (or, `--quiet`, one line per logged step).
 fn run_with_bar(trainer: &mut Trainer, a: &TrainArgs, limits: RunLimits, stop: &AtomicBool) -> Result<Stopped> {
     let log_interval = trainer.cfg().schedule.log_interval;
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(trainer.cfg().schedule.total_steps as u64) };
-    bar.set_style(
-        ProgressStyle::with_template("{prefix} [{bar:25}] {pos}/{len} {msg} | {elapsed} elapsed, eta {eta}")
-            .expect("static template")
-            .progress_chars("=> "),
-    );
+    let bar = progress::bar(trainer.cfg().schedule.total_steps as u64, "steps", a.quiet);
     bar.set_position(trainer.progress().step as u64);
     // A moving average of the seconds a step, not of each step's rate: with the coverage
     // term on every 4th step, averaging rates showed 340 img/s for a GPU run that did 74.

@@ -183,7 +183,7 @@ impl Report {
         let title =
             format!("all-reduce of {:.1} MB, {} ranks: ms vs log2 bucket KiB", self.bytes as f64 / 1e6, self.world);
         let panel = Panel { title, series, log_y: false, marks: vec![] };
-        crate::io::save_png(&PathBuf::from(format!("{}.png", stem.display())), &draw_panels(&[panel], 1, 520, 300))?;
+        crate::io::save_png(&PathBuf::from(format!("{}.png", stem.display())), &draw_panels(&[panel], 1, 520, 300)?)?;
         write_json(&PathBuf::from(format!("{}.json", stem.display())), self)?;
         println!("wrote {}.json and .png", stem.display());
         Ok(())

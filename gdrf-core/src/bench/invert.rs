@@ -26,7 +26,6 @@ use crate::pretrained::effnet::EfficientNetLite0;
 use crate::pretrained::lpips::{Lpips, LpipsNet};
 use crate::render::{Noise, Renderer};
 use crate::{device, CameraConfig, Error, Generator, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use tch::{Kind, Tensor};
@@ -427,16 +426,13 @@ pub fn run(a: &Options) -> Result<Report> {
         chosen.said
     );
     let total: usize = methods.iter().map(|m| m.cfg.steps * m.objects).sum::<usize>() * seeds.len();
-    let bar = ProgressBar::new(total as u64).with_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
-            .expect("valid template"),
-    );
+    let bar = crate::progress::bar(total as u64, "steps", false);
     let mut points = Vec::new();
     let mut figure_rows = Vec::new();
     // The mean code at the true pose, 0 steps, per object: every gain is measured from it.
     let mut baseline: Vec<f64> = Vec::new();
     for method in &methods {
-        bar.set_message(method.name.clone());
+        bar.set_prefix(method.name.clone());
         let checkpoints = checkpoints(method.cfg.steps);
         let n = method.objects;
         let mut cells = vec![vec![vec![Cell::default(); seeds.len()]; n]; checkpoints.len()];
@@ -592,7 +588,7 @@ impl Report {
             std::fs::create_dir_all(dir).map_err(|err| Error::Io { path: dir.to_path_buf(), err })?;
         }
         let stem = out.display().to_string();
-        crate::io::save_png(&PathBuf::from(format!("{stem}.png")), &draw_panels(&panels, 2, 480, 300))?;
+        crate::io::save_png(&PathBuf::from(format!("{stem}.png")), &draw_panels(&panels, 2, 480, 300)?)?;
         write_json(&PathBuf::from(format!("{stem}.json")), self)?;
         if !figure_rows.is_empty() {
             let fig = Tensor::cat(figure_rows, 1);

@@ -90,20 +90,6 @@ pub fn spawn_ranks(world: usize, args: &[std::ffi::OsString]) -> Result<Vec<u8>>
     Ok(first)
 }
 
-/// Runs `scripts/<script> ARGS…` (a plotting script) with the project's Python.
-pub fn run_script(script: &str, args: &[&Path]) -> Result<()> {
-    let plot = |reason: String| Error::Subprocess { program: format!("scripts/{script}"), reason };
-    let status = Command::new(python())
-        .arg(repo_root().join("scripts").join(script))
-        .args(args)
-        .status()
-        .map_err(|e| plot(format!("could not start: {e}")))?;
-    if !status.success() {
-        return Err(plot("failed (is matplotlib installed? run scripts/setup.sh)".into()));
-    }
-    Ok(())
-}
-
 /// Writes `doc` to `path` atomically as pretty JSON, its keys in alphabetical order at
 /// every level (it goes through a `serde_json::Value`), as the benchmark files have always
 /// been written: a rerun diffs against the committed figures line by line.
@@ -113,7 +99,7 @@ pub fn write_json(path: &Path, doc: &impl Serialize) -> Result<()> {
 }
 
 /// A `gdrf-bench` document (losses.json, step-….json): gdrf's timings beside the PyTorch
-/// reference's, per phase; scripts/plot_bench.py draws it.
+/// reference's, per phase, drawn as bars ([`Timings::write`]).
 #[derive(Serialize)]
 pub struct Timings<S: Serialize> {
     pub title: String,
@@ -168,7 +154,17 @@ impl<S: Serialize> Timings<S> {
         let json_path = out_dir.join(format!("{name}.json"));
         write_json(&json_path, self)?;
         let png = out_dir.join(format!("{name}.png"));
-        run_script("plot_bench.py", &[&json_path, &png])?;
+        let bars = crate::plot::Bars {
+            title: self.title.clone(),
+            y_label: "median seconds".into(),
+            groups: self.phases.iter().map(|p| p.to_string()).collect(),
+            series: self
+                .runs
+                .iter()
+                .map(|r| (r.implementation.clone(), self.phases.iter().map(|p| r.median(p)).collect()))
+                .collect(),
+        };
+        crate::io::save_png(&png, &crate::plot::draw_bars(&bars, 820, 420)?)?;
         println!("wrote {} and {}", json_path.display(), png.display());
         Ok(())
     }

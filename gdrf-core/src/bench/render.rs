@@ -1,7 +1,7 @@
 //! `gdrf-edit bench`: run time against error for each renderer configuration, on the
 //! trained model and on an analytic scene with exact surfaces, beside the PyTorch
 //! reference renderer timed in the same run.
-use super::{median, peak_rss_mb, run_reference, run_script, write_json};
+use super::{median, peak_rss_mb, run_reference, write_json};
 use crate::camera::Poses;
 use crate::checkpoint::load_generator;
 use crate::data::synth::{analytic::AnalyticField, sample_object, Category};
@@ -14,7 +14,6 @@ use crate::paths::write_atomic;
 use crate::render::Grids;
 use crate::render::{GridConfig, Image, Noise, OccupancyGrid, Renderer};
 use crate::{device, CameraConfig, Error, Latents, RenderConfig, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -330,10 +329,25 @@ pub fn run(a: &Options) -> Result<Report> {
     let md = report.markdown();
     write_atomic(&a.out.join("render.md"), md.as_bytes())?;
     let png = a.out.join("render.png");
-    run_script("plot_render_bench.py", &[&json_path, &png])?;
+    crate::io::save_png(&png, &report.chart()?)?;
     println!("{md}");
     println!("wrote {}, {} and {}", json_path.display(), png.display(), a.out.join("render.md").display());
     Ok(report)
+}
+
+/// The points (time, PSNR) that no faster one matches in PSNR, by time: the Pareto front.
+fn pareto(points: impl Iterator<Item = (f64, f64)>) -> Vec<(f64, f64)> {
+    let mut pts: Vec<(f64, f64)> = points.filter(|p| p.0.is_finite() && p.1.is_finite()).collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0).then(b.1.total_cmp(&a.1)));
+    let mut best = f64::NEG_INFINITY;
+    pts.into_iter()
+        .filter(|p| {
+            p.1 > best && {
+                best = p.1;
+                true
+            }
+        })
+        .collect()
 }
 
 fn max_abs(t: &Tensor) -> f64 {
@@ -389,12 +403,8 @@ fn run_scene<F: RadianceField>(
         // The analytic field has no networks to run in bfloat16.
         .filter(|s| !(s.bf16 && scene.name == "analytic"))
         .collect();
-    let bar = ProgressBar::new(list.len() as u64).with_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} configurations, {elapsed} elapsed, eta {eta}")
-            .unwrap()
-            .progress_chars("=> "),
-    );
-    bar.set_message(format!("{} {res}²", scene.name));
+    let bar = crate::progress::bar(list.len() as u64, "configurations", false);
+    bar.set_prefix(format!("{} {res}²", scene.name));
     let mut rows = Vec::new();
     let mut reference_images = Tensor::zeros([0], (Kind::Float, dev));
     for s in &list {
@@ -522,8 +532,53 @@ impl PyTorchRun {
 }
 
 impl Report {
-    /// The README table: per scene and resolution, each configuration's time, speed-up
-    /// over the release's sampler in this binary, queries and errors; the PyTorch
+    /// Time against error: a panel per scene and resolution (the model's first), a point
+    /// per configuration (ms per image, PSNR against the dense reference) coloured by its
+    /// family (the name before " N="), the Pareto front through the points no other beats
+    /// on both, the PyTorch reference's time as a vertical line, 40 dB dotted.
+    pub fn chart(&self) -> Result<image::RgbImage> {
+        let mut keys: Vec<(&str, i64)> = Vec::new();
+        for r in &self.results {
+            if !keys.contains(&(r.scene, r.resolution)) {
+                keys.push((r.scene, r.resolution));
+            }
+        }
+        keys.sort_by_key(|&(scene, res)| (scene != "model", res));
+        let cols = keys.iter().map(|k| k.1).collect::<std::collections::BTreeSet<_>>().len();
+        let family = |r: &Row| r.config.split(" N=").next().unwrap_or(&r.config).to_string();
+        let panels: Vec<crate::plot::ScatterPanel> = keys
+            .iter()
+            .map(|&(scene, res)| {
+                let rows: Vec<&Row> = self.results.iter().filter(|r| r.scene == scene && r.resolution == res).collect();
+                let points: Vec<(String, f64, f64, String)> =
+                    rows.iter().map(|r| (family(r), r.ms_per_image, r.psnr_db, format!("N={}", r.steps))).collect();
+                let verticals = self
+                    .pytorch
+                    .iter()
+                    .filter(|p| scene == "model" && p.resolution == res)
+                    .filter_map(|p| Some((format!("PyTorch {}", p.config), p.measured["ms_per_image"].as_f64()?)))
+                    .collect();
+                crate::plot::ScatterPanel {
+                    title: format!("{scene}, {res}×{res}"),
+                    front: pareto(points.iter().map(|p| (p.1, p.2))),
+                    points,
+                    verticals,
+                    threshold: Some(40.0),
+                }
+            })
+            .collect();
+        let axes = crate::plot::ScatterAxes {
+            title: format!("{} — {}, {} threads", self.title, self.device, self.threads),
+            x: "ms per image (median)".into(),
+            y: "PSNR vs dense reference (dB)".into(),
+            log_x: true,
+        };
+        crate::plot::draw_scatter(&panels, &axes, cols, 560, 420)
+    }
+
+    /// The table of docs/benchmarks.md, "Renderer: time against error": per scene and
+    /// resolution, each configuration's time, speed-up over the release's sampler in this
+    /// binary, queries and errors; the PyTorch
     /// reference's time. A grid's time is given twice: per image when many views reuse it,
     /// and for one view per shape (a single swap or render), its build included.
     pub fn markdown(&self) -> String {
@@ -570,5 +625,16 @@ impl Report {
             );
         }
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pareto;
+
+    #[test]
+    fn the_front_keeps_the_points_no_faster_one_matches() {
+        let pts = [(5.0, 40.0), (3.0, 42.0), (4.0, 41.0), (9.0, 50.0), (9.0, 45.0), (7.0, 49.0), (f64::NAN, 60.0)];
+        assert_eq!(pareto(pts.into_iter()), [(3.0, 42.0), (7.0, 49.0), (9.0, 50.0)]);
     }
 }

@@ -401,7 +401,7 @@ fn measure(
     cfg.threads = threads;
     let mut trainer = Trainer::new(cfg, run_dir)?;
     let t0 = Instant::now();
-    trainer.prepare_data(&|| {})?;
+    trainer.prepare_data(&|_| {})?;
     if let Some(g) = group {
         trainer.join_group(g)?;
     }

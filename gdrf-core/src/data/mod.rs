@@ -14,6 +14,7 @@ pub mod npy;
 pub mod synth;
 
 use crate::paths::write_atomic;
+use crate::progress::{Counter, Event};
 use crate::{Error, Result};
 use layouts::{Flip, Layout, ListOptions};
 use safetensors::tensor::{Dtype, TensorView};
@@ -273,8 +274,8 @@ pub fn par_try_map<T: Send>(n: usize, threads: usize, f: impl Fn(usize) -> Resul
     }
 }
 
-/// Loads the dataset in `dir`, calling `progress` once per decoded image.
-pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Result<Dataset> {
+/// Loads the dataset in `dir`, reporting each decoded image to `progress`.
+pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn(Event) + Sync)) -> Result<Dataset> {
     if !(2..=4096).contains(&opts.resolution) {
         return Err(Error::Config(format!("data resolution {} is out of range, expected 2..=4096", opts.resolution)));
     }
@@ -300,9 +301,10 @@ pub fn load(dir: &Path, opts: &LoadOptions, progress: &(dyn Fn() + Sync)) -> Res
     let (Decoded { pixels, alpha, names, mut skipped }, cache) = match cached {
         Some(d) => (d, CacheStatus::Hit(cache_path.clone().unwrap_or_default())),
         None => {
+            let counter = Counter::new("decoding images", listing.files.len() as u64, progress);
             let decoded = par_try_map(listing.files.len(), opts.threads, |i| {
                 let r = folder::load_image(&listing.files[i], res);
-                progress();
+                counter.tick();
                 match r {
                     Err(Error::Data { path, reason }) if opts.skip_bad => Ok(Err(Skipped { path, reason })),
                     r => r.map(Ok),
@@ -547,7 +549,7 @@ impl DataConfig {
     /// Generates the synthetic dataset at `path` when `synth` is set and no finished
     /// dataset is there; an existing one generated with other options is an error
     /// (never overwritten silently).
-    pub fn prepare(&self, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<Prepared> {
+    pub fn prepare(&self, threads: usize, progress: &(dyn Fn(Event) + Sync)) -> Result<Prepared> {
         let Some(want) = &self.synth else {
             return Ok(Prepared::External);
         };

@@ -6,6 +6,7 @@
 pub mod augment;
 pub mod projected;
 
+use crate::error::require;
 use crate::nn::mapping::leaky_relu;
 use crate::{Error, Result};
 use projected::{ProjectedConfig, ProjectedDiscriminator};
@@ -105,18 +106,18 @@ impl DiscConfig {
                 CHANNELS.len()
             )));
         }
-        if !(-1.0..=1.0).contains(&self.augment_fill) {
-            return Err(Error::Config(format!(
-                "discriminator.augment_fill is {}, expected a pixel value in [-1, 1] (0 grey, 1 white)",
-                self.augment_fill
-            )));
-        }
-        if self.minibatch_std_group < 0 {
-            return Err(Error::Config(format!(
-                "discriminator.minibatch_std_group is {}, expected 0 (off) or a group size ≥ 1",
-                self.minibatch_std_group
-            )));
-        }
+        require(
+            !(!(-1.0..=1.0).contains(&self.augment_fill)),
+            "discriminator.augment_fill",
+            self.augment_fill,
+            "a pixel value in [-1, 1] (0 grey, 1 white)",
+        )?;
+        require(
+            self.minibatch_std_group >= 0,
+            "discriminator.minibatch_std_group",
+            self.minibatch_std_group,
+            "0 (off) or a group size ≥ 1",
+        )?;
         Ok(())
     }
 }

@@ -7,6 +7,7 @@
 //! **appearance** as the colour branch's modulation γ_a, β_a `(1, L_c·H)` each, optionally a
 //! pose, and the identity of the generator it was made with. It is a safetensors file with
 //! the JSON header under the metadata key `gdrf_features`.
+pub mod matrix;
 pub mod view;
 
 use crate::checkpoint::{load_tensors_with, tensors_to_bytes};

@@ -22,9 +22,11 @@ use crate::camera::Poses;
 use crate::checkpoint::load_generator;
 use crate::data::synth;
 use crate::data::{Metadata, Split};
+use crate::edit::matrix::swap_pairs;
 use crate::field::generator::Truncation;
 use crate::pretrained::effnet::EfficientNetLite0;
 use crate::pretrained::inception::InceptionV3;
+use crate::progress::Event;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::{CameraConfig, Error, Generator, RenderConfig, Result};
@@ -178,7 +180,7 @@ impl Evaluator {
         probe_path: &Path,
         opts: &EvalOptions,
         device: Device,
-        progress: &mut dyn FnMut(&str, i64, i64),
+        progress: &mut dyn FnMut(Event),
     ) -> Result<Self> {
         if opts.num < 2 || opts.swap < 2 || opts.samples < 2 {
             return Err(Error::Invalid(format!(
@@ -210,8 +212,8 @@ impl Evaluator {
             FeatureKind::Efficientnet => Extractor::Effnet,
             FeatureKind::Inception(p) => Extractor::Inception(Box::new(InceptionV3::load(p, device)?)),
         };
-        progress("loading the dataset", 0, 1);
-        let data = probe::load_labelled(dataset, res as usize, opts.threads, &|| {})?;
+        progress(Event::new("loading the dataset", 0, 1));
+        let data = probe::load_labelled(dataset, res as usize, opts.threads, &|_| {})?;
         let (held_x, held_t, held_records) = data.split(Split::HeldOut, None);
         // The real end of the distances: as many training images as generated ones.
         let (train_x, train_t, _) = data.split(Split::Train, Some(opts.num as usize));
@@ -237,7 +239,7 @@ impl Evaluator {
                 real_swap
                     .push(Tensor::from_slice(&r.rgb).view([res, res, 3]).permute([2, 0, 1]).unsqueeze(0) * 2.0 - 1.0);
             }
-            progress("rendering the dataset's swaps", (i as i64 + 1) * k, k * k);
+            progress(Event::new("rendering the dataset's swaps", (i as u64 + 1) * k as u64, (k * k) as u64));
         }
         let real_swap = Tensor::cat(&real_swap, 0).to_kind(Kind::Float);
         let mut ev = Self {
@@ -306,13 +308,14 @@ impl Evaluator {
         &self,
         imgs: &Tensor,
         what: &str,
-        progress: &mut dyn FnMut(&str, i64, i64),
+        progress: &mut dyn FnMut(Event),
     ) -> Result<(Tensor, Option<Predictions>)> {
         let n = imgs.size()[0];
         let shared = self.probe.header.config.backbone == probe::Backbone::Efficientnet;
         match &self.extractor {
             Extractor::Effnet => {
-                let (pooled, tap) = self.effnet.pooled_and_last_tap(imgs, 32, &mut |d| progress(what, d, n))?;
+                let (pooled, tap) =
+                    self.effnet.pooled_and_last_tap(imgs, 32, &mut |e| progress(Event { task: what, ..e }))?;
                 Ok((pooled, shared.then(|| self.probe.predict_inputs(&probe::with_colour(&tap, imgs)))))
             }
             Extractor::Inception(net) => {
@@ -322,7 +325,7 @@ impl Evaluator {
                     let b = 16.min(n - i);
                     out.push(net.features_from_signed(&imgs.narrow(0, i, b))?.to_device(Device::Cpu));
                     i += b;
-                    progress(what, i, n);
+                    progress(Event::new(what, i as u64, n as u64));
                 }
                 Ok((Tensor::cat(&out, 0), None))
             }
@@ -339,12 +342,12 @@ impl Evaluator {
         swap: &Tensor,
         k: i64,
         what: &str,
-        progress: &mut dyn FnMut(&str, i64, i64),
+        progress: &mut dyn FnMut(Event),
     ) -> Result<(Scores, Tensor)> {
         let (feats, pred) = self.features(images, &format!("features: {what}"), progress)?;
         let fd = distance::frechet(&feats, &self.held_feats)?;
         let kid = distance::kernel(&feats, &self.held_feats, 50, 1000, self.opts.seed)?;
-        progress(&format!("probe: {what}"), 0, 1);
+        progress(Event::new(&format!("probe: {what}"), 0, 1));
         let p = match pred {
             Some(p) => p,
             None => self.predict(images)?,
@@ -378,7 +381,7 @@ impl Evaluator {
         cam: &CameraConfig,
         trunc: Option<&Truncation>,
         what: &str,
-        progress: &mut dyn FnMut(&str, i64, i64),
+        progress: &mut dyn FnMut(Event),
     ) -> Result<Scores> {
         let (num, k, res) = (self.opts.num, self.opts.swap, self.resolution);
         let device = g.kind_device().1;
@@ -389,16 +392,16 @@ impl Evaluator {
             Poses::sample_from(cam, num, &mut StepRng::new(self.opts.seed, 0, Purpose::EvalPoses, Kind::Float, device));
         let k = k.min(num);
         let zk = z.narrow(0, 0, k);
-        let (swap_s, swap_a) = (zk.repeat_interleave_self_int(k, 0, None), zk.repeat([k, 1]));
+        let (swap_s, swap_a) = swap_pairs(&zk);
         // Every swap cell at its shape code's pose, so that a row differs only in appearance.
-        let rep = |t: &Tensor| t.narrow(0, 0, k).repeat_interleave_self_int(k, 0, None);
+        let rep = |t: &Tensor| swap_pairs(&t.narrow(0, 0, k)).0;
         let swap_poses = Poses { pitch: rep(&poses.pitch), yaw: rep(&poses.yaw) };
         let total = num + k * k;
         let mut done = 0;
         let label = format!("rendering: {what}");
         let mut tick = |b: i64| {
             done += b;
-            progress(&label, done, total);
+            progress(Event::new(&label, done as u64, total as u64));
         };
         let imgs = render_codes((g, trunc), cam, &rc, (&z, &z), &poses, res, &mut tick)?;
         let swap = render_codes((g, trunc), cam, &rc, (&swap_s, &swap_a), &swap_poses, res, &mut tick)?;
@@ -433,7 +436,7 @@ pub fn evaluate(
     probe_path: &Path,
     opts: &EvalOptions,
     device: Device,
-    progress: &mut dyn FnMut(&str, i64, i64),
+    progress: &mut dyn FnMut(Event),
 ) -> Result<EvalResult> {
     let mut all = evaluate_seeds(generator, dataset, probe_path, opts, &[opts.seed], device, progress)?;
     Ok(all.remove(0))
@@ -450,7 +453,7 @@ pub fn evaluate_seeds(
     opts: &EvalOptions,
     seeds: &[u64],
     device: Device,
-    progress: &mut dyn FnMut(&str, i64, i64),
+    progress: &mut dyn FnMut(Event),
 ) -> Result<Vec<EvalResult>> {
     let Some(&first) = seeds.first() else {
         return Err(Error::Invalid("eval needs at least one seed".into()));
@@ -480,7 +483,7 @@ pub fn score_generator(
     (name, dataset): (String, &Path),
     what: &str,
     start: std::time::Instant,
-    progress: &mut dyn FnMut(&str, i64, i64),
+    progress: &mut dyn FnMut(Event),
 ) -> Result<EvalResult> {
     let (opts, device) = (&ev.opts, ev.device);
     let cam = header.camera.clone().unwrap_or_default();

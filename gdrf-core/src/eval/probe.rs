@@ -13,6 +13,7 @@ use crate::data::synth::{ImageRecord, ShapeParams};
 use crate::data::{self, LoadOptions, Metadata, Split};
 use crate::paths::write_atomic;
 use crate::pretrained::effnet::EfficientNetLite0;
+use crate::progress::Event;
 use crate::rng::{Purpose, StepRng};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -246,7 +247,7 @@ pub fn probe_inputs(
     effnet: Option<&EfficientNetLite0>,
     images: &Tensor,
     batch: i64,
-    progress: &mut dyn FnMut(i64),
+    progress: &mut dyn FnMut(Event),
 ) -> Result<Tensor> {
     let n = images.size()[0];
     match backbone {
@@ -262,7 +263,7 @@ pub fn probe_inputs(
                     None,
                 )
             };
-            progress(n);
+            progress(Event::new("probe inputs", n as u64, n as u64));
             Ok(x)
         }
         Backbone::Efficientnet => {
@@ -481,7 +482,12 @@ impl Labelled {
 
 /// Loads a procedural chairs dataset (`metadata.json` + images) at `resolution` with the
 /// ground truth of every image.
-pub fn load_labelled(dir: &Path, resolution: usize, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<Labelled> {
+pub fn load_labelled(
+    dir: &Path,
+    resolution: usize,
+    threads: usize,
+    progress: &(dyn Fn(Event) + Sync),
+) -> Result<Labelled> {
     let meta = Metadata::load(dir)?;
     let opts = LoadOptions { threads, ..LoadOptions::new(resolution) };
     let ds = data::load(dir, &opts, progress)?;

@@ -85,7 +85,7 @@ const BARS_CAPTION: &str = "bars: structure (left) and colour (right). green yes
 /// off-diagonal cell: left half structure follows the row, right half colour follows the
 /// column).
 pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
-    use crate::plot::{draw_text, fill, text_width};
+    use crate::plot::{draw_text, fill, text_width, TABLE, TEXT};
     use image::Rgb;
     let s = r.resolution;
     let cols = 8;
@@ -94,7 +94,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let cell = s + 6;
     // Wide enough for the grids and for every fixed caption, which would otherwise be cut.
     let captions = [CLASSES_CAPTION, SWAP_CAPTION, BARS_CAPTION];
-    let text = captions.iter().map(|c| text_width(c, 1)).max().unwrap_or(0);
+    let text = captions.iter().map(|c| text_width(c, TEXT)).collect::<Result<Vec<_>>>()?.into_iter().max().unwrap_or(0);
     let width = (grid.width() as i64).max(k * cell + 20).max(text + 10).max(620) + 20;
     let hist_h = 150;
     let low_lines = if r.real_at_resolution.is_some() { 2 } else { 0 };
@@ -102,7 +102,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let mut img = image::RgbImage::from_pixel(width as u32, height as u32, Rgb([255, 255, 255]));
     let black = Rgb([0, 0, 0]);
     let mut y = 10;
-    draw_text(&mut img, 10, y, &format!("gdrf eval: {} images at {}x{}", r.images, s, s), black, 1);
+    draw_text(&mut img, 10, y, &format!("gdrf eval: {} images at {}x{}", r.images, s, s), black, TEXT)?;
     y += 14;
     draw_text(
         &mut img,
@@ -110,8 +110,8 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         y,
         &format!("{:<24}{:>10}{:>10}{:>10}{:>10}", "score", "model", "real", "random", "position"),
         black,
-        1,
-    );
+        TABLE,
+    )?;
     for (name, c) in score_rows(r) {
         y += 14;
         draw_text(
@@ -120,8 +120,8 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
             y,
             &format!("{name:<24}{:>10.4}{:>10.4}{:>10.4}{:>10.2}", c.model, c.real, c.random, c.position),
             black,
-            1,
-        );
+            TABLE,
+        )?;
     }
     y += 14;
     let o = &r.yaw_frame_offset_deg;
@@ -129,7 +129,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         "yaw in its own frame: turned {:.1} (model) {:.1} (real) {:.1} (random) deg",
         o.model, o.real, o.random
     );
-    draw_text(&mut img, 10, y, &line, black, 1);
+    draw_text(&mut img, 10, y, &line, black, TEXT)?;
     if let Some(l) = &r.real_at_resolution {
         let lines = [
             format!(
@@ -143,21 +143,21 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         ];
         for line in lines {
             y += 14;
-            draw_text(&mut img, 10, y, &line, black, 1);
+            draw_text(&mut img, 10, y, &line, black, TEXT)?;
         }
     }
     y += 24;
-    draw_text(&mut img, 10, y, "samples", black, 1);
+    draw_text(&mut img, 10, y, "samples", black, TEXT)?;
     y += 12;
     image::imageops::overlay(&mut img, &grid, 10, y);
     y += grid.height() as i64 + 16;
-    draw_text(&mut img, 10, y, CLASSES_CAPTION, black, 1);
+    draw_text(&mut img, 10, y, CLASSES_CAPTION, black, TEXT)?;
     y += 14;
     let colours = [Rgb([90, 90, 90]), Rgb([40, 110, 220]), Rgb([220, 120, 40])];
     let mut x = 10;
     let bar_w = 5;
     for t in &r.classes {
-        draw_text(&mut img, x, y + hist_h - 10, &t.factor, black, 1);
+        draw_text(&mut img, x, y + hist_h - 10, &t.factor, black, TEXT)?;
         for (c, _) in t.classes.iter().enumerate() {
             for (series, v) in [&t.reference, &t.model, &t.random].iter().enumerate() {
                 let h = (v[c] * (hist_h - 24) as f64).round() as i64;
@@ -169,9 +169,9 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         x += 16;
     }
     y += hist_h + 12;
-    draw_text(&mut img, 10, y, SWAP_CAPTION, black, 1);
+    draw_text(&mut img, 10, y, SWAP_CAPTION, black, TEXT)?;
     y += 14;
-    draw_text(&mut img, 10, y, BARS_CAPTION, black, 1);
+    draw_text(&mut img, 10, y, BARS_CAPTION, black, TEXT)?;
     y += 14;
     let sw = io::to_rgb8(&io::grid(&r.swap_images, k), false)?;
     for i in 0..k {

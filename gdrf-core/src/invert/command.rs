@@ -17,9 +17,9 @@ use crate::eval::fidelity::psnr_all;
 use crate::io::{save_gif, save_png, to_rgb8};
 use crate::plot::draw_panels;
 use crate::pretrained::lpips::{Lpips, LpipsNet};
+use crate::progress;
 use crate::render::GridChoice;
 use crate::{device, Error, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use tch::{Kind, Tensor};
 
@@ -345,11 +345,8 @@ pub fn run(a: &Options) -> Result<()> {
         samples,
         a.steps
     );
-    let bar = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(cfg.steps as u64) };
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} steps [{elapsed_precise}<{eta_precise}] {msg}")
-            .expect("valid template"),
-    );
+    let bar = progress::bar(cfg.steps as u64, "steps", a.quiet);
+    bar.set_prefix("inverting");
     let inv = invert(g, &cam, &photo, &start, &cfg, perc.as_ref(), &mut |l: &StepLog| {
         bar.set_position(l.step as u64 + 1);
         bar.set_message(format!("loss {:.4} (mse {:.4}, perceptual {:.4})", l.loss, l.mse, l.perceptual));
@@ -392,7 +389,7 @@ pub fn run(a: &Options) -> Result<()> {
         }
         save_gif(&a.out.join("orbit.gif"), &frames, 80)?;
     }
-    save_png(&a.out.join("loss.png"), &draw_panels(&loss_panels(&inv.history), 2, 360, 240))?;
+    save_png(&a.out.join("loss.png"), &draw_panels(&loss_panels(&inv.history), 2, 360, 240)?)?;
     let report = serde_json::json!({
         "photo": photo_path.display().to_string(),
         "init": chosen.path.as_deref().map(crate::paths::shown),
@@ -479,22 +476,16 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         }
         _ => None,
     };
-    let style = ProgressStyle::with_template("{msg:12} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]")
-        .expect("valid template");
-    let bar = |len: i64, msg: &'static str| {
-        let b = if a.quiet { ProgressBar::hidden() } else { ProgressBar::new(len as u64) };
-        b.set_style(style.clone());
-        b.set_message(msg);
+    let bar = |len: i64, task: &'static str, unit: &str| {
+        let b = progress::bar(len as u64, unit, a.quiet);
+        b.set_prefix(task);
         b
     };
     let reals = match &a.real {
         Some(dir) => {
-            let b = bar(0, "real images");
-            let r = init_stage::load_real_images(dir, cfg.resolution, dev, &mut |d, n| {
-                b.set_length(n as u64);
-                b.set_position(d as u64)
-            })
-            .with_context(|| format!("loading --real {}", dir.display()))?;
+            let b = bar(0, "real images", "images");
+            let r = init_stage::load_real_images(dir, cfg.resolution, dev, &mut |e| progress::follow(&b, e))
+                .with_context(|| format!("loading --real {}", dir.display()))?;
             b.finish_and_clear();
             Some(r)
         }
@@ -519,7 +510,7 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         cfg.steps,
         cfg.batch_size
     );
-    let b = bar(cfg.count, "rendering");
+    let b = bar(cfg.count, "rendering", "tuples");
     let t0 = std::time::Instant::now();
     let cached = match &a.tuples {
         Some(p) if p.is_file() => init_stage::Tuples::load(p, &id, &cfg, dev)?,
@@ -531,7 +522,7 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
             t
         }
         None => {
-            let t = init_stage::generate(g, &cam, &cfg, &mut |d| b.set_position(d as u64))?;
+            let t = init_stage::generate(g, &cam, &cfg, &mut |e| progress::follow(&b, e))?;
             if let Some(p) = &a.tuples {
                 t.save(p, &id, &cfg)?;
             }
@@ -542,16 +533,14 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
     let generate_s = t0.elapsed().as_secs_f64();
     // Only a frozen backbone takes its features before the first step.
     let features = match cfg.backbone {
-        init_stage::Backbone::EffnetLite0 => {
-            bar(cfg.count + reals.as_ref().map_or(0, |r| r.images.size()[0]), "features")
-        }
-        init_stage::Backbone::Resnet34 => ProgressBar::hidden(),
+        init_stage::Backbone::EffnetLite0 => bar(cfg.count, "features", "images"),
+        init_stage::Backbone::Resnet34 => progress::bar(0, "images", true),
     };
-    let training = bar(cfg.steps, "training");
+    let training = bar(cfg.steps, "training", "steps");
     let t1 = std::time::Instant::now();
     let (mut f, evals) =
         init_stage::train(g, &cam, &id, &tuples, reals.as_ref(), lite0, &cfg, &a.out, a.resume, &mut |p| match p {
-            init_stage::TrainProgress::Features(n) => features.inc(n as u64),
+            init_stage::TrainProgress::Features(e) => progress::follow(&features, e),
             init_stage::TrainProgress::Step(step, ev) => {
                 if !features.is_finished() {
                     features.finish_and_clear();
@@ -595,7 +584,7 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
     });
     crate::paths::write_atomic(&json_path, json(&report)?.as_bytes())?;
     let png_path = PathBuf::from(format!("{}.png", a.out.display()));
-    save_png(&png_path, &draw_panels(&init_curve_panels(&history), 2, 420, 280))?;
+    save_png(&png_path, &draw_panels(&init_curve_panels(&history), 2, 420, 280)?)?;
     if let Some(ship) = &a.ship {
         // Checked on held-out inputs: 16 rendered tuples, and 16 real images where trained on some.
         let held = tuples.images.narrow(0, cfg.count - cfg.held_out, cfg.held_out.min(16));

@@ -24,6 +24,7 @@ use crate::nn::film::Film;
 use crate::paths::write_atomic;
 use crate::pretrained::effnet::{EfficientNetLite0, FEATURE_DIM};
 use crate::pretrained::weights::Weights;
+use crate::progress::Event;
 use crate::render::{Noise, Renderer};
 use crate::rng::{Purpose, RandomSource, StepRng};
 use crate::train::optim::{zero_grads, Adam};
@@ -270,8 +271,13 @@ pub struct RealImages {
 }
 
 /// Renders `cfg.count` tuples from codes and poses drawn from `cfg.seed` (the same seed gives
-/// the same tuples), `progress(done)` after each batch of 16.
-pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &mut dyn FnMut(i64)) -> Result<Tuples> {
+/// the same tuples), reporting to `progress` after each batch of 16.
+pub fn generate(
+    g: &Generator,
+    cam: &CameraConfig,
+    cfg: &InitConfig,
+    progress: &mut dyn FnMut(Event),
+) -> Result<Tuples> {
     cfg.validate()?;
     let (kind, device) = g.kind_device();
     let n = cfg.count;
@@ -295,7 +301,7 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
         ws.push(w);
         apps.push(a);
         i += b;
-        progress(i);
+        progress(Event::new("rendering tuples", i as u64, n as u64));
     }
     Ok(Tuples {
         images: Tensor::cat(&images, 0),
@@ -308,12 +314,7 @@ pub fn generate(g: &Generator, cam: &CameraConfig, cfg: &InitConfig, progress: &
 /// The training split of the procedural dataset in `dir` at its stored poses, loaded as
 /// gdrf-invert loads a photo (on white, the loader's area filter) at `res`; `progress(done)`
 /// every 256 images. Its held-out objects are never read.
-pub fn load_real_images(
-    dir: &Path,
-    res: i64,
-    device: Device,
-    progress: &mut dyn FnMut(i64, i64),
-) -> Result<RealImages> {
+pub fn load_real_images(dir: &Path, res: i64, device: Device, progress: &mut dyn FnMut(Event)) -> Result<RealImages> {
     use crate::data::{Metadata, Split};
     let meta = Metadata::load(dir)?;
     let train: Vec<_> = meta.images.iter().filter(|r| r.split == Split::Train).collect();
@@ -324,7 +325,7 @@ pub fn load_real_images(
     for (i, r) in train.iter().enumerate() {
         images.push(super::photo::load_photo(&dir.join(&r.file), None, super::photo::Fit::Crop, res, Device::Cpu)?);
         if (i + 1) % 256 == 0 || i + 1 == train.len() {
-            progress(i as i64 + 1, train.len() as i64);
+            progress(Event::new("real images", i as u64 + 1, train.len() as u64));
         }
     }
     let poses: Vec<f32> = train.iter().flat_map(|r| [r.pitch as f32, r.yaw as f32]).collect();
@@ -787,15 +788,16 @@ enum Inputs {
 }
 
 impl Inputs {
-    fn of(init: &Initialiser, images: &Tensor, progress: &mut dyn FnMut(i64)) -> Result<Self> {
+    fn of(init: &Initialiser, images: &Tensor, progress: &mut dyn FnMut(Event)) -> Result<Self> {
         if init.lite0.is_none() {
             return Ok(Inputs::Images(images.shallow_clone()));
         }
         let l = init.lite0.as_ref().expect("checked");
-        let mut out = Vec::new();
+        let (mut out, mut done, n) = (Vec::new(), 0, images.size()[0] as u64);
         for chunk in images.split(64, 0) {
             out.push(l.features(&chunk)?);
-            progress(chunk.size()[0]);
+            done += chunk.size()[0] as u64;
+            progress(Event::new("features", done, n));
         }
         Ok(Inputs::Features(Tensor::cat(&out, 0)))
     }
@@ -888,8 +890,8 @@ fn evaluate(
 
 /// What [`train`] reports while it runs.
 pub enum TrainProgress<'a> {
-    /// Frozen-backbone features taken of this many more images.
-    Features(i64),
+    /// How far the frozen backbone's features have come.
+    Features(Event<'a>),
     /// A step done, with its evaluation when one ran.
     Step(i64, Option<&'a InitEval>),
 }
@@ -946,8 +948,8 @@ pub fn train(
             reals.map_or(0, |r| r.images.size()[0])
         )));
     }
-    let x = Inputs::of(&init, &tuples.images, &mut |b| progress(TrainProgress::Features(b)))?;
-    let xr = reals.map(|r| Inputs::of(&init, &r.images, &mut |b| progress(TrainProgress::Features(b)))).transpose()?;
+    let x = Inputs::of(&init, &tuples.images, &mut |e| progress(TrainProgress::Features(e)))?;
+    let xr = reals.map(|r| Inputs::of(&init, &r.images, &mut |e| progress(TrainProgress::Features(e)))).transpose()?;
     // The frozen features' standardisation, from the training rows alone (a resumed run keeps
     // the one it saved).
     if let (Inputs::Features(f), false) = (&x, resume) {

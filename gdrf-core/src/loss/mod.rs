@@ -13,6 +13,7 @@ pub mod gan;
 mod objective;
 
 use crate::disc::DiscOutput;
+use crate::error::require;
 use crate::{Error, Result};
 use deform_reg::RegConfig;
 pub use objective::GeneratorObjective;
@@ -104,66 +105,47 @@ impl Default for LossConfig {
 
 impl LossConfig {
     pub fn validate(&self) -> Result<()> {
-        if self.r1_interval < 1 {
-            return Err(Error::Config(format!("loss.r1_interval is {}, expected at least 1", self.r1_interval)));
-        }
+        require(self.r1_interval >= 1, "loss.r1_interval", self.r1_interval, "at least 1")?;
         if !(self.topk_interval > 0.0 && (0.0..=1.0).contains(&self.topk_floor)) {
             return Err(Error::Config(format!(
                 "loss.topk_interval {} must be positive and loss.topk_floor {} in [0, 1]",
                 self.topk_interval, self.topk_floor
             )));
         }
-        if !(self.diversity_weight >= 0.0 && self.diversity_weight.is_finite()) {
-            return Err(Error::Config(format!(
-                "loss.diversity_weight is {}, expected 0 (off) or a positive weight",
-                self.diversity_weight
-            )));
-        }
-        if !(self.coverage_weight >= 0.0 && self.coverage_weight.is_finite()) {
-            return Err(Error::Config(format!(
-                "loss.coverage_weight is {}, expected 0 (off) or a positive weight",
-                self.coverage_weight
-            )));
-        }
-        if self.coverage_candidates < 1 {
-            return Err(Error::Config(format!(
-                "loss.coverage_candidates is {}, expected at least 1",
-                self.coverage_candidates
-            )));
-        }
-        if !(2..=512).contains(&self.coverage_resolution) {
-            return Err(Error::Config(format!(
-                "loss.coverage_resolution is {}, expected 2 to 512 pixels",
-                self.coverage_resolution
-            )));
-        }
-        if self.coverage_interval < 1 {
-            return Err(Error::Config(format!(
-                "loss.coverage_interval is {}, expected at least 1",
-                self.coverage_interval
-            )));
-        }
-        if self.diversity_decay < 0 {
-            return Err(Error::Config(format!(
-                "loss.diversity_decay is {}, expected 0 (a constant weight) or a number of steps",
-                self.diversity_decay
-            )));
-        }
-        if self.reg_warmup < 0 {
-            return Err(Error::Config(format!(
-                "loss.reg_warmup is {}, expected 0 (off) or a number of steps",
-                self.reg_warmup
-            )));
-        }
-        if self.diversity_pool < 1 {
-            return Err(Error::Config(format!("loss.diversity_pool is {}, expected at least 1", self.diversity_pool)));
-        }
-        if !(self.diversity_cap > 0.0 && self.diversity_cap.is_finite()) {
-            return Err(Error::Config(format!(
-                "loss.diversity_cap is {}, expected a positive number",
-                self.diversity_cap
-            )));
-        }
+        require(
+            self.diversity_weight >= 0.0 && self.diversity_weight.is_finite(),
+            "loss.diversity_weight",
+            self.diversity_weight,
+            "0 (off) or a positive weight",
+        )?;
+        require(
+            self.coverage_weight >= 0.0 && self.coverage_weight.is_finite(),
+            "loss.coverage_weight",
+            self.coverage_weight,
+            "0 (off) or a positive weight",
+        )?;
+        require(self.coverage_candidates >= 1, "loss.coverage_candidates", self.coverage_candidates, "at least 1")?;
+        require(
+            !(!(2..=512).contains(&self.coverage_resolution)),
+            "loss.coverage_resolution",
+            self.coverage_resolution,
+            "2 to 512 pixels",
+        )?;
+        require(self.coverage_interval >= 1, "loss.coverage_interval", self.coverage_interval, "at least 1")?;
+        require(
+            self.diversity_decay >= 0,
+            "loss.diversity_decay",
+            self.diversity_decay,
+            "0 (a constant weight) or a number of steps",
+        )?;
+        require(self.reg_warmup >= 0, "loss.reg_warmup", self.reg_warmup, "0 (off) or a number of steps")?;
+        require(self.diversity_pool >= 1, "loss.diversity_pool", self.diversity_pool, "at least 1")?;
+        require(
+            self.diversity_cap > 0.0 && self.diversity_cap.is_finite(),
+            "loss.diversity_cap",
+            self.diversity_cap,
+            "a positive number",
+        )?;
         Ok(())
     }
 }

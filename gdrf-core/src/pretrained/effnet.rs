@@ -269,13 +269,13 @@ impl EfficientNetLite0 {
 
     /// The pooled features `(N, 1280)` and the last tap `(N, 320, 7, 7)` of images
     /// `(N, 3, H, W)` in [−1, 1] at 224², in one pass (the distances and the probe share
-    /// it), in batches of `batch`, without gradients, on the CPU; `progress(done)` after
-    /// each batch.
+    /// it), in batches of `batch`, without gradients, on the CPU; images done reported to
+    /// `progress` after each batch.
     pub fn pooled_and_last_tap(
         &self,
         images: &Tensor,
         batch: i64,
-        progress: &mut dyn FnMut(i64),
+        progress: &mut dyn FnMut(crate::progress::Event),
     ) -> Result<(Tensor, Tensor)> {
         let n = images.size()[0];
         let (mut pooled, mut taps) = (Vec::new(), Vec::new());
@@ -287,7 +287,7 @@ impl EfficientNetLite0 {
             pooled.push(f.pooled.to_device(Device::Cpu));
             taps.push(f.taps.pop().expect("five taps").to_device(Device::Cpu));
             i += b;
-            progress(i);
+            progress(crate::progress::Event::new("features", i as u64, n as u64));
         }
         if pooled.is_empty() {
             return Err(Error::Invalid("no images to extract features from".into()));

@@ -13,7 +13,7 @@ use super::config::TrainConfig;
 use super::run;
 use crate::eval::result::EvalResult;
 use crate::eval::seeds::SeedSummary;
-use crate::plot::{draw_dashes, draw_panels, draw_text, Panel, Series};
+use crate::plot::{draw_dashes, draw_panels, draw_text, Panel, Series, TEXT};
 use crate::{io, Error, Result};
 use serde::Serialize;
 use serde_json::Value;
@@ -358,7 +358,7 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
             marks,
         },
     ];
-    let img = draw_panels(&panels, 2, 520, 320);
+    let img = draw_panels(&panels, 2, 520, 320)?;
     let mut caption = format!(
         "x: thousand images seen. {} evaluations, last at step {}",
         lines.len(),
@@ -368,9 +368,9 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
         let steps: Vec<String> = starts.iter().map(|(step, _)| step.to_string()).collect();
         caption += &format!(". Dashed: a stage of config.toml starts (step {})", steps.join(", "));
     }
-    let mut with_caption = image::RgbImage::from_pixel(img.width(), img.height() + 18, image::Rgb([255, 255, 255]));
+    let mut with_caption = image::RgbImage::from_pixel(img.width(), img.height() + 22, image::Rgb([255, 255, 255]));
     image::imageops::overlay(&mut with_caption, &img, 0, 0);
-    draw_text(&mut with_caption, 10, img.height() as i64 + 4, &caption, image::Rgb([20, 20, 20]), 1);
+    draw_text(&mut with_caption, 10, img.height() as i64 + 4, &caption, image::Rgb([20, 20, 20]), TEXT)?;
     let path = run_dir.join(CURVE_PLOT);
     io::save_png(&path, &with_caption)?;
     Ok(Some(path))
@@ -526,11 +526,11 @@ pub fn filmstrip(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf
         // steps 0..k, so a stage whose first step is s shows from the first row past s.
         if let Some(from) = before.and_then(|b| starts.iter().map(|s| s.0).rev().find(|&s| b <= s && s < *step)) {
             draw_dashes(&mut out, 0, (y - pad / 2) as i64, w as i64, false);
-            draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, 1);
-            draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, 1);
+            draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, TEXT)?;
+            draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, TEXT)?;
         }
-        draw_text(&mut out, 6, y as i64 + 2, &format!("step {step}"), ink, 1);
-        draw_text(&mut out, 6, y as i64 + 14, &format!("{kimages}k images"), grey, 1);
+        draw_text(&mut out, 6, y as i64 + 2, &format!("step {step}"), ink, TEXT)?;
+        draw_text(&mut out, 6, y as i64 + 14, &format!("{kimages}k images"), grey, TEXT)?;
         image::imageops::overlay(&mut out, img, label_w as i64, y as i64);
         y += img.height() + pad;
         before = Some(*step);

@@ -201,7 +201,7 @@ impl Evaluation {
                 threads: t.cfg.threads,
                 ..EvalOptions::default()
             };
-            self.evaluator = Some(Evaluator::new(&t.cfg.data.path, &probe, &opts, t.device, &mut |_, _, _| {})?);
+            self.evaluator = Some(Evaluator::new(&t.cfg.data.path, &probe, &opts, t.device, &mut |_| {})?);
         }
         let header = t.header("generator");
         // As committed records show them: relative to the repository where inside it.
@@ -214,7 +214,7 @@ impl Evaluation {
             ev.reseed(seed)?;
             let what = format!(" (seed {seed})");
             let names = (name.clone(), dataset.as_path());
-            results.push(score_generator(ev, &t.ema_generator, &header, names, &what, seed_start, &mut |_, _, _| {})?);
+            results.push(score_generator(ev, &t.ema_generator, &header, names, &what, seed_start, &mut |_| {})?);
             seed_start = Instant::now();
         }
         let summary = crate::eval::seeds::summarise(&results)?;

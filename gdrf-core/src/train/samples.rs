@@ -60,8 +60,7 @@ pub fn render_previews(t: &Trainer) -> Result<Previews> {
             }
         }
         let zk = z.narrow(0, 0, k);
-        let shape = zk.repeat_interleave_self_int(k, 0, None);
-        let appearance = zk.repeat([k, 1]);
+        let (shape, appearance) = crate::edit::matrix::swap_pairs(&zk);
         let swap_lat = gen.latents(&shape, &appearance, None)?;
         let swap =
             (0..k * k).map(|i| render(&swap_lat, i, first_yaw, FieldOptions::default())).collect::<Result<Vec<_>>>()?;

@@ -23,7 +23,7 @@ use tch::{Device, Kind, Tensor};
 
 impl Trainer {
     /// Generates the procedural dataset if the config asks for one that is not there yet.
-    pub fn prepare_data(&self, progress: &(dyn Fn() + Sync)) -> Result<data::Prepared> {
+    pub fn prepare_data(&self, progress: &(dyn Fn(crate::progress::Event) + Sync)) -> Result<data::Prepared> {
         self.cfg.data.prepare(self.cfg.threads, progress)
     }
 
@@ -31,7 +31,7 @@ impl Trainer {
     pub fn dataset(&mut self, res: i64) -> Result<&Dataset> {
         if !self.datasets.contains_key(&res) {
             let opts = self.cfg.data.load_options(res as usize, self.cfg.threads);
-            let ds = data::load(&self.cfg.data.path, &opts, &|| {})?;
+            let ds = data::load(&self.cfg.data.path, &opts, &|_| {})?;
             if ds.is_empty() {
                 return Err(Error::Data {
                     path: self.cfg.data.path.clone(),

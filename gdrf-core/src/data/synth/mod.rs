@@ -17,6 +17,7 @@ pub mod tables;
 use super::{par_try_map, Metadata, Split, FORMAT_VERSION, METADATA_FILE};
 use crate::config::{CameraConfig, PoseDistribution};
 use crate::paths::write_atomic;
+use crate::progress::{Counter, Event};
 use crate::{Error, Result};
 use material::Appearance;
 use render::{fit_radius, render, RenderOptions, Rendered, Scene};
@@ -244,9 +245,14 @@ pub fn encode_png(rgba: Vec<u8>, res: usize) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
-/// Renders the dataset into `dir` (created if needed) on `threads` threads, calling
-/// `progress` after each image. Output bytes do not depend on `threads`.
-pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<Metadata> {
+/// Renders the dataset into `dir` (created if needed) on `threads` threads, reporting each
+/// image to `progress`. Output bytes do not depend on `threads`.
+pub fn generate(
+    dir: &Path,
+    opts: &SynthOptions,
+    threads: usize,
+    progress: &(dyn Fn(Event) + Sync),
+) -> Result<Metadata> {
     opts.validate()?;
     let images_dir = dir.join("images");
     std::fs::create_dir_all(&images_dir).map_err(|source| Error::Io { path: images_dir.clone(), err: source })?;
@@ -257,6 +263,7 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
         Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(Error::Io { path: meta_path, err: e }),
         _ => {}
     }
+    let counter = Counter::new("generating images", opts.count as u64, progress);
     let records = par_try_map(opts.count, threads, |i| {
         let rec = image_record(opts, i);
         let img = render_object(&rec.shape, &rec.appearance, rec.pitch, rec.yaw, opts)?;
@@ -264,7 +271,7 @@ pub fn generate(dir: &Path, opts: &SynthOptions, threads: usize, progress: &(dyn
         // Plain writes: the atomic metadata file, written last, is the commit point.
         std::fs::write(&path, encode_png(img.to_rgba8(), opts.resolution)?)
             .map_err(|source| Error::Io { path: path.clone(), err: source })?;
-        progress();
+        counter.tick();
         Ok(rec)
     })?;
     remove_stale_images(&images_dir, &records)?;
