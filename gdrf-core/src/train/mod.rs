@@ -14,6 +14,7 @@ pub mod optim;
 mod parallel;
 pub mod pass;
 pub mod plateau;
+mod reals;
 pub mod run;
 pub mod samples;
 pub mod snapshot;
