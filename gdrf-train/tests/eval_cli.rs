@@ -326,7 +326,7 @@ fn probe_learns_and_eval_is_calibrated() {
     // The plot: five panels of 520 × 320 in two columns and a caption; the filmstrip: a row
     // per evaluation, each 16 px samples (two rows of four) beside the swap matrix's 3 × 3.
     let plot = image::open(run.join("curve.png")).unwrap().to_rgb8();
-    assert_eq!(plot.dimensions(), (1040, 3 * 320 + 18));
+    assert_eq!(plot.dimensions(), (1040, 3 * 320 + 22));
     let strip = image::open(run.join("filmstrip.png")).unwrap().to_rgb8();
     assert_eq!(strip.dimensions(), (96 + 4 * 16 + 8 + 3 * 16 + 6, 2 * (3 * 16 + 6) + 6));
     // `gdrf-train ship` copies the evaluation the rule ranks best, byte for byte.
@@ -494,7 +494,7 @@ fn probe_learns_and_eval_is_calibrated() {
     let marked = image::open(snap.join("filmstrip.png")).unwrap().to_rgb8();
     assert_eq!(marked.dimensions(), plain.dimensions());
     let (gap_y, row_y) = (6 + 48 + 3, 6 + 48 + 6);
-    let label = |x: u32, y: u32| x < 96 && (row_y + 26..row_y + 45).contains(&y);
+    let label = |x: u32, y: u32| x < 96 && (row_y + 26..row_y + 48).contains(&y);
     let white = image::Rgb([255u8; 3]);
     let mut inked = 0;
     for (x, y, &p) in marked.enumerate_pixels() {

@@ -13,7 +13,7 @@ use super::config::TrainConfig;
 use super::run;
 use crate::eval::result::EvalResult;
 use crate::eval::seeds::SeedSummary;
-use crate::plot::{draw_dashes, draw_panels, draw_text, Panel, Series, TEXT};
+use crate::plot::{draw_dashes, draw_panels, draw_text, Lettering, Panel, Series, TEXT};
 use crate::{io, Error, Result};
 use serde::Serialize;
 use serde_json::Value;
@@ -493,6 +493,10 @@ fn frame(r: &EvalResult) -> Result<image::RgbImage> {
     Ok(img)
 }
 
+/// The filmstrip's labels: four lines 12 px apart fit beside the smallest frame (two rows
+/// of 16 px samples beside a 3 × 3 swap matrix, 48 px).
+const LABEL: Lettering = Lettering { px: 10.0, mono: false };
+
 /// Stacks the frames of every evaluation on the curve into RUN_DIR/filmstrip.png, each
 /// row labelled with its step and images seen. Where one of the run's `starts`
 /// ([`run_stage_starts`]) falls between two rows, a dashed line runs through the gap above
@@ -526,11 +530,11 @@ pub fn filmstrip(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf
         // steps 0..k, so a stage whose first step is s shows from the first row past s.
         if let Some(from) = before.and_then(|b| starts.iter().map(|s| s.0).rev().find(|&s| b <= s && s < *step)) {
             draw_dashes(&mut out, 0, (y - pad / 2) as i64, w as i64, false);
-            draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, TEXT)?;
-            draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, TEXT)?;
+            draw_text(&mut out, 6, y as i64 + 26, "stage from", grey, LABEL)?;
+            draw_text(&mut out, 6, y as i64 + 38, &format!("step {from}"), grey, LABEL)?;
         }
-        draw_text(&mut out, 6, y as i64 + 2, &format!("step {step}"), ink, TEXT)?;
-        draw_text(&mut out, 6, y as i64 + 14, &format!("{kimages}k images"), grey, TEXT)?;
+        draw_text(&mut out, 6, y as i64 + 2, &format!("step {step}"), ink, LABEL)?;
+        draw_text(&mut out, 6, y as i64 + 14, &format!("{kimages}k images"), grey, LABEL)?;
         image::imageops::overlay(&mut out, img, label_w as i64, y as i64);
         y += img.height() + pad;
         before = Some(*step);
