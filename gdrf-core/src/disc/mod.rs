@@ -107,7 +107,7 @@ impl DiscConfig {
             )));
         }
         require(
-            !(!(-1.0..=1.0).contains(&self.augment_fill)),
+            (-1.0..=1.0).contains(&self.augment_fill),
             "discriminator.augment_fill",
             self.augment_fill,
             "a pixel value in [-1, 1] (0 grey, 1 white)",

@@ -126,7 +126,7 @@ impl LossConfig {
         )?;
         require(self.coverage_candidates >= 1, "loss.coverage_candidates", self.coverage_candidates, "at least 1")?;
         require(
-            !(!(2..=512).contains(&self.coverage_resolution)),
+            (2..=512).contains(&self.coverage_resolution),
             "loss.coverage_resolution",
             self.coverage_resolution,
             "2 to 512 pixels",

@@ -62,7 +62,7 @@ pub(super) struct Canvas<'a>(BitMapBackend<'a>);
 impl<'a> Canvas<'a> {
     pub(super) fn on(img: &'a mut RgbImage) -> DrawingArea<Self, Shift> {
         let dims = img.dimensions();
-        Canvas(BitMapBackend::with_buffer(&mut **img, dims)).into_drawing_area()
+        Canvas(BitMapBackend::with_buffer(img, dims)).into_drawing_area()
     }
 }
 

@@ -300,7 +300,7 @@ fn settings(a: &Options, header: &crate::checkpoint::Header) -> Result<(InvertCo
 
 /// The perceptual term's network: EfficientNet-Lite0, or LPIPS on the user's backbone.
 enum PerceptualNet {
-    Effnet(crate::pretrained::effnet::EfficientNetLite0),
+    Effnet(Box<crate::pretrained::effnet::EfficientNetLite0>),
     Lpips(Lpips),
 }
 
@@ -309,7 +309,7 @@ impl PerceptualNet {
     fn load(a: &Options, dev: tch::Device) -> Result<Option<Self>> {
         Ok(Some(match a.perceptual.as_str() {
             "none" => return Ok(None),
-            "effnet" => PerceptualNet::Effnet(load_effnet(dev)?),
+            "effnet" => PerceptualNet::Effnet(Box::new(load_effnet(dev)?)),
             name => {
                 let net = if name == "lpips-vgg" { LpipsNet::Vgg16 } else { LpipsNet::Alex };
                 let Some(backbone) = &a.lpips_backbone else {
