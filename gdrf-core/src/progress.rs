@@ -44,7 +44,7 @@ impl<'a> Counter<'a> {
 }
 
 #[cfg(feature = "cli")]
-pub use bar::{bar, follow, spinner};
+pub use bar::{bar, follow};
 
 #[cfg(feature = "cli")]
 mod bar {
@@ -58,14 +58,6 @@ mod bar {
         let template =
             format!("{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} {{msg}} | {{elapsed}} elapsed, eta {{eta}}");
         b.set_style(ProgressStyle::with_template(&template).expect("a valid template").progress_chars("=> "));
-        b
-    }
-
-    /// A spinner counting `unit`s of a job whose total is not known, with their rate.
-    pub fn spinner(unit: &str, quiet: bool) -> ProgressBar {
-        let b = if quiet { ProgressBar::hidden() } else { ProgressBar::new_spinner() };
-        let template = format!("{{spinner}} {{prefix}} {{pos}} {unit} ({{per_sec}})");
-        b.set_style(ProgressStyle::with_template(&template).expect("a valid template"));
         b
     }
 
