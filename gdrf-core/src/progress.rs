@@ -51,12 +51,12 @@ mod bar {
     use super::Event;
     use indicatif::{ProgressBar, ProgressStyle};
 
-    /// A bar of `total` `unit`s: its prefix names the task, its message (set by the caller)
-    /// follows the count. Hidden with `quiet`.
+    /// A bar of `total` `unit`s: its prefix names the task, its message (set by the caller:
+    /// a loss, a step's numbers) comes last. Hidden with `quiet`.
     pub fn bar(total: u64, unit: &str, quiet: bool) -> ProgressBar {
         let b = if quiet { ProgressBar::hidden() } else { ProgressBar::new(total) };
         let template =
-            format!("{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} {{msg}} | {{elapsed}} elapsed, eta {{eta}}");
+            format!("{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} | {{elapsed}} elapsed, eta {{eta}} {{msg}}");
         b.set_style(ProgressStyle::with_template(&template).expect("a valid template").progress_chars("=> "));
         b
     }
