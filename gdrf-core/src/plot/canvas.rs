@@ -68,8 +68,14 @@ impl<'a> Canvas<'a> {
 
 /// The face a text style names: monospace, or the sans face for any other family.
 fn face(family: &str) -> Result<FontRef<'static>> {
-    let bytes = if family == "monospace" { MONO } else { SANS };
-    FontRef::try_from_slice(bytes).map_err(|e| Error::Invalid(format!("the plots' embedded font: {e}")))
+    // Parsed once per process: every label and measurement of every chart asks for one.
+    static FACES: OnceLock<Option<(FontRef<'static>, FontRef<'static>)>> = OnceLock::new();
+    let parse = || Some((FontRef::try_from_slice(SANS).ok()?, FontRef::try_from_slice(MONO).ok()?));
+    let (sans, mono) = FACES
+        .get_or_init(parse)
+        .as_ref()
+        .ok_or_else(|| Error::Invalid("the plots' embedded fonts (assets/fonts) do not parse".into()))?;
+    Ok(if family == "monospace" { mono.clone() } else { sans.clone() })
 }
 
 /// Calls `dot(x, y, coverage)` for every pixel of `text` at `px` pixels, its box's top-left

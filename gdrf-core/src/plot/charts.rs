@@ -93,13 +93,11 @@ pub fn draw_bars(b: &Bars, w: u32, h: u32) -> Result<RgbImage> {
                 .map_err(drawing)?
                 .label(name.clone())
                 .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 12, y + 5)], colour.filled()));
-            let labels = vals.iter().enumerate().filter(|(_, v)| v.is_finite()).map(|(g, &v)| {
-                Text::new(
-                    format!("{:.3}", v).trim_end_matches('0').trim_end_matches('.').to_string(),
-                    (x0(g) + width / 2.0, v),
-                    above.clone(),
-                )
-            });
+            let labels = vals
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| v.is_finite())
+                .map(|(g, &v)| Text::new(fmt_num(v), (x0(g) + width / 2.0, v), above.clone()));
             chart.draw_series(labels).map_err(drawing)?;
         }
         let below = font(TEXT)?.color(&INK).pos(Pos::new(HPos::Center, VPos::Top));
