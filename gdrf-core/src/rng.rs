@@ -98,6 +98,8 @@ pub enum Purpose {
     RealBackground = 29,
     DiscBackground = 30,
     GenBackground = 31,
+    /// The scaled-patch step's scales and offsets, shared by both players' updates.
+    Patches = 32,
 }
 
 /// A source of uniform and normal tensors.

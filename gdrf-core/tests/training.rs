@@ -475,8 +475,34 @@ fn every_shipped_config_loads_and_validates() {
     names.sort();
     assert_eq!(
         names,
-        ["carla", "cars", "chairs", "chairs-campaign", "chairs-campaign-cpu", "chairs-campaign-gpu", "chairs-tiny"]
+        [
+            "carla",
+            "cars",
+            "chairs",
+            "chairs-campaign",
+            "chairs-campaign-cpu",
+            "chairs-campaign-cpu-patch",
+            "chairs-campaign-gpu",
+            "chairs-tiny"
+        ]
     );
+}
+
+/// The scaled-patch candidate of the 64² stage is the CPU config but for that stage's
+/// `[stages.patch]`: 32² patches, whose discriminator input (32², what the 32² stages
+/// trained) fades nothing in.
+#[test]
+fn the_campaign_patch_config_differs_from_the_cpu_one_in_the_64_stages_patches_only() {
+    let dir = common::repo_root().join("configs");
+    let cpu = TrainConfig::load(&dir.join("chairs-campaign-cpu.toml")).unwrap();
+    let mut patch = TrainConfig::load(&dir.join("chairs-campaign-cpu-patch.toml")).unwrap();
+    let p = patch.stages[2].patch.clone().expect("the 64² stage's patches");
+    assert_eq!((p.size, p.beta_start, p.beta_end, p.anneal_images), (32, 0.001, 0.8, 200_000));
+    assert_eq!((patch.stages[2].from_step, patch.stages[2].resolution), (205_046, 64));
+    assert_eq!(patch.switch_step(205_046), None);
+    assert_eq!(patch.alpha(205_046), 1.0);
+    patch.stages[2].patch = None;
+    assert_eq!(patch, cpu);
 }
 
 /// The campaign's two continuation configs hold the same keys but for the GPU's float32

@@ -13,7 +13,7 @@ use crate::loss::LossConfig;
 use crate::nn::sine;
 use crate::paths::TempDir;
 use crate::train::config::{EmaConfig, OptimConfig, Precision};
-use crate::train::{StepReport, TrainConfig, Trainer};
+use crate::train::{PatchConfig, StepReport, TrainConfig, Trainer};
 use crate::{CameraConfig, Error, GeneratorConfig, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -35,6 +35,14 @@ pub struct Options {
     /// Index of the config's stage to run (its resolution, samples, batch, split).
     #[arg(long, default_value_t = 0)]
     pub stage: usize,
+    /// Image side R (default: the stage's), e.g. the 128² step of a 64² stage.
+    #[arg(long)]
+    pub resolution: Option<i64>,
+    /// The scaled-patch step with P×P patches of the R×R images (`[stages.patch] size`;
+    /// default: the stage's, whole images where it has none). The PyTorch reference has no
+    /// such step and is then skipped.
+    #[arg(long, value_name = "P")]
+    pub patch: Option<i64>,
     /// Timed steps per implementation (the median is reported).
     #[arg(long, default_value_t = 3)]
     pub steps: usize,
@@ -58,7 +66,8 @@ pub struct Options {
     /// DistributedDataParallel does). Writes …-nproc<N>.json.
     #[arg(long, default_value_t = 1)]
     pub nproc: usize,
-    /// Folder for step-<config>-stage<I>-b<batch>[-<device>][-bf16][-nproc<N>].json and .png.
+    /// Folder for step-<config>-stage<I>-b<batch>[-r<R>][-p<P>][-<device>][-bf16][-nproc<N>].json
+    /// and .png.
     #[arg(long, default_value = "bench")]
     pub out_dir: PathBuf,
     /// Run as one rank of --nproc (set by the command itself for the processes it starts).
@@ -77,6 +86,8 @@ pub struct Settings {
     pub batch_size: i64,
     pub batch_split: i64,
     pub regions: i64,
+    /// The scaled-patch step's patch side (absent: whole images).
+    pub patch: Option<i64>,
     pub warmup_steps: usize,
     pub timed_steps: usize,
     pub device: String,
@@ -118,11 +129,16 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     }
     let st = cfg.stages[0].clone();
     let (b, res, n) = (st.batch_size, st.resolution, st.num_steps);
+    let patch = st.patch.as_ref().map(|p| p.size);
     let stem = config.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "config".into());
     let r1 = if cfg.loss.r1_gamma == 0.0 { "R1 off".to_string() } else { "R1 due".to_string() };
     let precision = if bf16 { "bfloat16" } else { "float32" };
+    let image = match patch {
+        Some(p) => format!("{p}² scaled patches of {res}²"),
+        None => format!("{res}²"),
+    };
     let title = format!(
-        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {res}², {n}+{n} samples, {r1}, {} {precision}",
+        "Training step (D + G, Adam, EMA), {stem} stage {stage}: batch {b} (split {}), {image}, {n}+{n} samples, {r1}, {} {precision}",
         st.batch_split, a.device,
     );
     eprintln!("{title}\nrunning gdrf ({warmup} warm-up + {steps} timed steps) …");
@@ -143,6 +159,12 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     let phases = if n > 1 { vec!["step", "allreduce"] } else { vec!["step"] };
     let doc = Timings { title, machine, settings: Some(settings), phases, runs };
     let mut name = format!("step-{stem}-stage{stage}-b{b}");
+    if a.resolution.is_some() {
+        name += &format!("-r{res}");
+    }
+    if let Some(p) = patch {
+        name += &format!("-p{p}");
+    }
     if a.device != "cpu" {
         name += &format!("-{}", a.device.replace(':', ""));
     }
@@ -169,6 +191,7 @@ fn settings(a: &Options, cfg: &TrainConfig, notes: Vec<String>, precision: &'sta
         batch_size: st.batch_size,
         batch_split: st.batch_split,
         regions: st.regions,
+        patch: st.patch.as_ref().map(|p| p.size),
         warmup_steps: a.warmup,
         timed_steps: a.steps,
         device: a.device.clone(),
@@ -195,6 +218,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
     let (warmup, steps) = (a.warmup, a.steps);
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let n = a.nproc;
+    let cfg_patch = cfg.stages[0].patch.clone();
     let mut runs = Vec::new();
     if n == 1 {
         runs.push(measure(cfg.clone(), &tmp.join("run"), warmup, steps, cores, None)?);
@@ -206,7 +230,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
             r.implementation = "gdrf with libtorch's sine".into();
             runs.push(r);
         }
-        if !a.no_reference {
+        if !a.no_reference && cfg_patch.is_none() {
             runs.push(reference_run("bench_step.py", ref_args)?);
         }
     } else {
@@ -217,7 +241,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
         let mut ranks = ranks(a)?;
         ranks.implementation = format!("gdrf, {n} ranks × 1 thread");
         runs.push(ranks);
-        if !a.no_reference {
+        if !a.no_reference && cfg_patch.is_none() {
             for (world, threads) in [(1, n), (n, 1)] {
                 let mut args = ref_args.to_vec();
                 args.extend([format!("--threads={threads}"), format!("--world={world}")]);
@@ -339,6 +363,16 @@ fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
             notes.push(format!("batch_split {} does not divide --batch {b}: using batch_split 1", st.batch_split));
             st.batch_split = 1;
         }
+    }
+    if let Some(r) = a.resolution {
+        st.resolution = r;
+    }
+    if let Some(p) = a.patch {
+        // The end of the annealing: a step costs the same at any scale.
+        st.patch = Some(PatchConfig { size: p, anneal_images: 0, ..PatchConfig::default() });
+    }
+    if st.patch.is_some() {
+        notes.push("the scaled-patch step: the PyTorch reference has none, and is not run".into());
     }
     if st.regions > 1 {
         notes.push(format!(

@@ -27,6 +27,12 @@ impl Patch {
         Self { scale: 1.0, offset: (0.0, 0.0) }
     }
 
+    /// `[s, ox, oy]`: what the discriminator is told of the patch
+    /// ([`crate::disc::Judge::judge_patches`]).
+    pub fn coords(&self) -> [f64; 3] {
+        [self.scale, self.offset.0, self.offset.1]
+    }
+
     /// Refuses a patch that is not inside the image or finer than its pixels, for a `p`-pixel
     /// patch of an `r`-pixel image.
     pub fn check(&self, p: i64, r: i64) -> Result<()> {

@@ -145,6 +145,12 @@ impl Judge for AugmentedJudge<'_> {
         let x = augment(img, self.ops, self.fill, &mut *self.rng.borrow_mut())?;
         self.inner.judge(&x, alpha)
     }
+    /// The patches' coordinates pass through: translation moves a patch's content within
+    /// it, as it moves a whole image's.
+    fn judge_patches(&self, img: &Tensor, alpha: f64, at: &Tensor) -> Result<DiscOutput> {
+        let x = augment(img, self.ops, self.fill, &mut *self.rng.borrow_mut())?;
+        self.inner.judge_patches(&x, alpha, at)
+    }
     fn used_parameters(&self, size: i64) -> Result<i64> {
         self.inner.used_parameters(size)
     }

@@ -83,6 +83,17 @@ pub trait Judge {
     /// `img: (B, 3, S, S)` in [−1, 1] → logit `(B, 1)`, latent `(B, 256)`, pose `(B, 2)`;
     /// `alpha` is the fade-in of a resolution switch (1 = none).
     fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput>;
+    /// The same verdict on scaled patches of images (the scaled-patch step), each seen
+    /// where it lies: `at: (B, 3)` holds each patch's scale and top-left offset
+    /// `[s, ox, oy]` as fractions of its image ([`crate::camera::patch::Patch::coords`]).
+    /// A discriminator that cannot be told refuses.
+    fn judge_patches(&self, _img: &Tensor, _alpha: f64, _at: &Tensor) -> Result<DiscOutput> {
+        Err(Error::Config(
+            "this discriminator cannot be told where a scaled patch lies; stages.patch needs \
+             discriminator.kind = \"release\""
+                .into(),
+        ))
+    }
     /// Trained parameters a `size × size` input uses.
     fn used_parameters(&self, size: i64) -> Result<i64>;
 }
@@ -161,12 +172,31 @@ impl Conv {
 /// Appends the coordinate channels: first the row coordinate (varies along H), then the
 /// column coordinate (varies along W), each idx/(size − 1)·2 − 1. `x: (B, C, H, W)`.
 pub fn add_coords(x: &Tensor) -> Tensor {
+    add_coords_at(x, None)
+}
+
+/// [`add_coords`] of a scaled patch of the image: with `at: (B, 3)` = `[s, ox, oy]`
+/// (scale and top-left offset as fractions of the image, y down), each coordinate is
+/// EpiGRAF's `(c + 1)·s − 1 + 2·o` of the patch's own c = idx/(size − 1)·2 − 1: where the
+/// patch lies in the whole image's [−1, 1], its spacing carrying the scale. The whole image
+/// (`[1, 0, 0]`) gets `add_coords`' channels bit for bit, so a discriminator trained on
+/// whole images sees whole-image patches exactly as before, and no parameter is added.
+pub fn add_coords_at(x: &Tensor, at: Option<&Tensor>) -> Tensor {
     let s = x.size();
     let (b, h, w) = (s[0], s[2], s[3]);
     let opts = (x.kind(), x.device());
     let coord = |n: i64| Tensor::arange(n, opts) / ((n - 1).max(1) as f64) * 2.0 - 1.0;
-    let rows = coord(h).view([1, 1, h, 1]).expand([b, 1, h, w], false);
-    let cols = coord(w).view([1, 1, 1, w]).expand([b, 1, h, w], false);
+    let (rows, cols) = match at {
+        None => (coord(h).view([1, 1, h, 1]), coord(w).view([1, 1, 1, w])),
+        Some(at) => {
+            let at = at.to_kind(x.kind()).view([b, 3, 1, 1]);
+            let (scale, ox, oy) = (at.narrow(1, 0, 1), at.narrow(1, 1, 1), at.narrow(1, 2, 1));
+            let place = |c: Tensor, o: &Tensor| (c + 1.0) * &scale - 1.0 + o * 2.0;
+            (place(coord(h).view([1, 1, h, 1]), &oy), place(coord(w).view([1, 1, 1, w]), &ox))
+        }
+    };
+    let rows = rows.expand([b, 1, h, w], false);
+    let cols = cols.expand([b, 1, h, w], false);
     Tensor::cat(&[x.shallow_clone(), rows, cols], 1)
 }
 
@@ -187,9 +217,12 @@ impl ResidualBlock {
             proj: (cin != cout).then(|| Conv::new(&vs / "proj", cin, cout, 1, 0)),
         }
     }
-    pub fn forward(&self, x: &Tensor) -> Tensor {
-        let y = leaky_relu(&self.conv1.forward(&add_coords(x)));
-        let y = leaky_relu(&self.conv2.forward(&add_coords(&y))).avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None);
+    /// `x: (B, C, H, W)`, the coordinate channels those of the patches `at` where given
+    /// ([`add_coords_at`]).
+    pub fn forward(&self, x: &Tensor, at: Option<&Tensor>) -> Tensor {
+        let y = leaky_relu(&self.conv1.forward(&add_coords_at(x, at)));
+        let y = leaky_relu(&self.conv2.forward(&add_coords_at(&y, at)));
+        let y = y.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None);
         let skip = x.avg_pool2d([2, 2], [2, 2], [0, 0], false, true, None);
         let skip = match &self.proj {
             Some(p) => p.forward(&skip),
@@ -231,6 +264,17 @@ impl Judge for Discriminator {
     fn judge(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
         self.forward(img, alpha)
     }
+    fn judge_patches(&self, img: &Tensor, alpha: f64, at: &Tensor) -> Result<DiscOutput> {
+        if at.size() != [img.size()[0], 3] {
+            return Err(Error::Shape(format!(
+                "patch coordinates of shape {:?} for {} images, expected [{}, 3]",
+                at.size(),
+                img.size()[0],
+                img.size()[0]
+            )));
+        }
+        self.forward_at(img, alpha, Some(at))
+    }
     fn used_parameters(&self, size: i64) -> Result<i64> {
         used_parameters(self, size)
     }
@@ -270,6 +314,12 @@ impl Discriminator {
 
     /// `img: (B, 3, S, S)` in [−1, 1]; `alpha` ∈ [0, 1] fades in the first block (1 = fully in).
     pub fn forward(&self, img: &Tensor, alpha: f64) -> Result<DiscOutput> {
+        self.forward_at(img, alpha, None)
+    }
+
+    /// [`Self::forward`] on scaled patches `img` lying at `at: (B, 3)` in their images
+    /// ([`add_coords_at`]; `None`: whole images).
+    pub fn forward_at(&self, img: &Tensor, alpha: f64, at: Option<&Tensor>) -> Result<DiscOutput> {
         let size = img.size()[3];
         if img.size()[2] != size || img.size()[1] != 3 {
             return Err(Error::Shape(format!("discriminator expects (B, 3, S, S) images, got {:?}", img.size())));
@@ -281,7 +331,7 @@ impl Discriminator {
                 let skip = leaky_relu(&self.from_rgb[start + 1].forward(&downsample_aa(img)));
                 x = x * alpha + skip * (1.0 - alpha);
             }
-            x = layer.forward(&x);
+            x = layer.forward(&x, at);
         }
         if self.minibatch_std_group > 0 {
             x = minibatch_std(&x, self.minibatch_std_group);
@@ -397,6 +447,42 @@ mod tests {
             d.forward(&Tensor::rand([6, 3, 32, 32], (Kind::Float, Device::Cpu)), 1.0).unwrap().logit.size(),
             [6, 1]
         );
+    }
+
+    /// Under the scaled-patch step the coordinate channels say where each patch lies: the
+    /// whole image's bit for bit at `[1, 0, 0]`, EpiGRAF's `(c + 1)·s − 1 + 2·o` elsewhere.
+    #[test]
+    fn patch_coordinates_place_each_patch_in_its_image() {
+        let opts = (Kind::Float, Device::Cpu);
+        let x = Tensor::rand([2, 1, 5, 5], opts);
+        let whole = Tensor::from_slice(&[1.0f32, 0.0, 0.0, 1.0, 0.0, 0.0]).view([2, 3]);
+        assert!(add_coords_at(&x, Some(&whole)).equal(&add_coords(&x)));
+        // Image 0: a quarter-size patch at (0.5, 0.25); image 1: half size at (0.1, 0.5).
+        let at = Tensor::from_slice(&[0.25f64, 0.5, 0.25, 0.5, 0.1, 0.5]).view([2, 3]);
+        let y = add_coords_at(&x.to_kind(Kind::Double), Some(&at));
+        for (b, (s, ox, oy)) in [(0i64, (0.25, 0.5, 0.25)), (1, (0.5, 0.1, 0.5))] {
+            for k in 0..5i64 {
+                let c = k as f64 / 4.0 * 2.0 - 1.0;
+                let (row, col) = ((c + 1.0) * s - 1.0 + 2.0 * oy, (c + 1.0) * s - 1.0 + 2.0 * ox);
+                // Rows vary along H, columns along W.
+                assert!((y.double_value(&[b, 1, k, 3]) - row).abs() < 1e-15, "image {b} row {k}");
+                assert!((y.double_value(&[b, 2, 2, k]) - col).abs() < 1e-15, "image {b} column {k}");
+            }
+        }
+        // A patch's first row and column start at its offset: −1 + 2·o.
+        assert_eq!(y.double_value(&[0, 2, 0, 0]), 0.0);
+        assert_eq!(y.double_value(&[1, 1, 0, 0]), 0.0);
+        // The discriminator: whole-image patches judge as whole images, exactly; other
+        // patches differently; a wrong shape of coordinates is refused.
+        let vs = nn::VarStore::new(Device::Cpu);
+        let cfg = DiscConfig { channels: vec![8, 8, 8, 8, 8, 8, 8, 8, 8], ..Default::default() };
+        let d = Discriminator::with_config(&vs.root(), &cfg).unwrap();
+        let img = Tensor::rand([2, 3, 16, 16], opts);
+        let plain = d.judge(&img, 1.0).unwrap();
+        assert!(d.judge_patches(&img, 1.0, &whole).unwrap().logit.equal(&plain.logit));
+        let placed = d.judge_patches(&img, 1.0, &at.to_kind(Kind::Float)).unwrap();
+        assert!(!placed.logit.allclose(&plain.logit, 1e-6, 1e-6, false));
+        assert!(d.judge_patches(&img, 1.0, &whole.narrow(0, 0, 1)).is_err());
     }
 
     #[test]

@@ -173,7 +173,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
 
     /// Renders rays `(B, R, 3)` in chunks of about `chunk_points` samples (gradients flow
     /// where autograd is enabled); the result equals one [`Self::render_rays`] call.
-    fn render_rays_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
+    pub(crate) fn render_rays_chunked(&self, latents: &Latents, rays: &Rays, noise: &Noise) -> Result<RenderedRays> {
         let b = rays.dirs.size()[0];
         let parts = self.in_chunks(rays, self.config.samples_per_ray() as i64, |start, len| {
             self.render_rays(latents, &rays.narrow(start, len), &noise.slice(0, b, start, len))

@@ -17,11 +17,12 @@ pub mod plateau;
 mod reals;
 pub mod run;
 pub mod samples;
+mod scaled;
 pub mod snapshot;
 mod state;
 mod step;
 
-pub use config::{Stage, StepKind, TrainConfig};
+pub use config::{PatchConfig, Stage, StepKind, TrainConfig};
 pub use pass::{
     discriminator_judgement, discriminator_pass, generator_judgement, generator_pass, patch_gradients, FakeBatch,
     Judged,

@@ -4,6 +4,7 @@
 //! adds), and the guarded application of each update.
 use super::optim::{clip_grads, grad_norm, zero_grads};
 use super::parallel::GRADIENT_BUCKET_BYTES;
+use super::scaled::{render_fakes, Placed, StepPatches};
 use super::{discriminator_judgement, generator_judgement, patch_gradients, Judged};
 use super::{Stage, StepKind, StepReport, Trainer};
 use crate::camera::Poses;
@@ -39,7 +40,7 @@ impl Trainer {
         let (b, res) = (stage.batch_size, stage.resolution);
 
         let real_all = self.real_batch(&stage, step)?;
-        let (real, real_poses) = self.judged_real(&real_all, step);
+        let (real, real_poses) = self.real_seen(&real_all, &stage, step)?;
         let real_poses = real_poses.as_ref();
         let (d, g) = if g_lr <= 0.0 {
             // A discriminator-only stage: no generator render, no gradient, no EMA update.
@@ -115,9 +116,10 @@ impl Trainer {
     }
 
     /// One player's fake batch of `stage` at `step` ([`Draws`]), from the draws
-    /// `[codes, poses, jitter, importance, background]`.
+    /// `[codes, poses, jitter, importance, background]`, with the step's patches under the
+    /// scaled-patch step.
     fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 5]) -> Draws {
-        let (b, res, n) = (stage.batch_size, stage.resolution, stage.num_steps as i64);
+        let (b, res, n) = (stage.batch_size, stage.rendered_size(), stage.num_steps as i64);
         let [codes, poses, jitter, importance, background] = purposes;
         let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
         let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, poses));
@@ -136,7 +138,17 @@ impl Trainer {
             (rows(&z), poses.narrow(first, n))
         };
         let background = self.random_background().then(|| rows(&self.background_colours(step, background, b)));
-        Draws { z: rows(&z), poses: poses.narrow(first, n), noise, background, judged_z, judged_poses }
+        let patches = self.step_patches(stage, step).map(|all| FakePatches {
+            judged_at: self.judged_patches(&all).coords(self.device),
+            own: all.rows(first, n),
+        });
+        Draws { z: rows(&z), poses: poses.narrow(first, n), noise, background, judged_z, judged_poses, patches }
+    }
+
+    /// `judge` seeing the images of `draws` where they lie: their patches under the
+    /// scaled-patch step, whole images otherwise.
+    fn placed<'a>(judge: &'a dyn Judge, draws: &Draws) -> Placed<'a> {
+        Placed { inner: judge, at: draws.patches.as_ref().map(|p| p.judged_at.shallow_clone()) }
     }
 
     /// The discriminator behind the configured augmentation (`[discriminator] augment`),
@@ -179,17 +191,18 @@ impl Trainer {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         // Fakes from the live generator, rendered without gradients (the release's D step).
-        let Draws { z, poses, noise, background, .. } = draws;
+        let Draws { z, poses, noise, background, patches, .. } = draws;
         let fakes = tch::no_grad(|| -> Result<Tensor> {
             let lat = self.generator.latents(z, z, None)?;
-            let (img, parts) = renderer.render_regions(&lat, poses, stage.resolution, stage.regions, noise)?;
+            let own = patches.as_ref().map(|p| &p.own);
+            let (img, parts) = render_fakes(&renderer, &lat, (poses, noise), stage, own)?;
             Ok(self.on_colours(&img, &parts, &renderer, background.as_ref()))
         })?;
         let fakes = self.judged_rows(&fakes)?;
         let augmented = self.augmented(at.step, Purpose::DiscAugment);
-        let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+        let judge = Self::placed(augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge), draws);
         let losses = discriminator_judgement(
-            judge,
+            &judge,
             real,
             real_poses,
             &fakes,
@@ -297,7 +310,7 @@ impl Trainer {
     /// pose and depths while the mode-seeking term is on, so that a pair's difference is
     /// its codes' alone), the regulariser rays, and whether a fault is injected.
     fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
-        let (b, res) = (stage.batch_size, stage.resolution);
+        let (b, res) = (stage.batch_size, stage.rendered_size());
         let purposes =
             [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance, Purpose::GenBackground];
         let mut fakes = self.fake_draws(stage, step, purposes);
@@ -347,7 +360,8 @@ impl Trainer {
                     let d = draws.chunk(c, split);
                     let f = &d.fakes;
                     let lat = self.generator.latents(&f.z, &f.z, None)?;
-                    let (img, parts) = renderer.render_regions(&lat, &f.poses, stage.resolution, 1, &f.noise)?;
+                    let own = f.patches.as_ref().map(|p| &p.own);
+                    let (img, parts) = render_fakes(&renderer, &lat, (&f.poses, &f.noise), stage, own)?;
                     let img = self.on_colours(&img, &parts, &renderer, f.background.as_ref());
                     Ok((d, lat, img, parts))
                 })
@@ -357,8 +371,9 @@ impl Trainer {
         let d = {
             let augmented = self.augmented(at.step, Purpose::DiscAugment);
             let judge = augmented.as_ref().map_or(self.disc.as_ref(), |a| a as &dyn Judge);
+            let judge = Self::placed(judge, &draws.fakes);
             let losses = discriminator_judgement(
-                judge,
+                &judge,
                 real,
                 real_poses,
                 &fakes,
@@ -383,7 +398,7 @@ impl Trainer {
                 let judged = Judged { img: &img, poses: &d.fakes.judged_poses, z: Some(&d.fakes.judged_z) };
                 let mut losses = generator_judgement(
                     &self.generator,
-                    judge,
+                    &Self::placed(judge, &d.fakes),
                     &judged,
                     (lat, parts),
                     Some(&d.reg_rays),
@@ -410,18 +425,19 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?;
+        let (real, real_poses) = self.real_batch(&stage, step).and_then(|r| self.real_seen(&r, &stage, step))?;
         let (_, losses) =
             self.one_render_gradients(&stage, at, &real, real_poses.as_ref(), d_lr * self.progress.lr_scale)?;
         Ok(losses.values())
     }
 
-    /// The real images `(B, 3, R, R)` the discriminator judges in the step about to run: on
-    /// white, or on that step's random colours unless the background is learned (tests).
+    /// The real images `(B, 3, S, S)` the discriminator judges in the step about to run: on
+    /// white, or on that step's random colours unless the background is learned; resampled
+    /// at the step's patches under the scaled-patch step (tests).
     pub fn judged_real_now(&mut self) -> Result<Tensor> {
         let step = self.progress.step;
         let stage = self.cfg.stage(step).clone();
-        Ok(self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?.0)
+        Ok(self.real_batch(&stage, step).and_then(|r| self.real_seen(&r, &stage, step))?.0)
     }
 
     /// The release's discriminator step (its own no-grad render) applied to the fakes of
@@ -431,7 +447,7 @@ impl Trainer {
         let stage = self.cfg.stage(step).clone();
         let at = Schedule { step, alpha: self.cfg.alpha(step) };
         let (_, d_lr) = self.cfg.learning_rates(step);
-        let (real, real_poses) = self.real_batch(&stage, step).map(|r| self.judged_real(&r, step))?;
+        let (real, real_poses) = self.real_batch(&stage, step).and_then(|r| self.real_seen(&r, &stage, step))?;
         let draws = self.generator_draws(&stage, step);
         let lr = d_lr * self.progress.lr_scale;
         self.discriminator_step_on(&stage, at, &real, real_poses.as_ref(), &draws.fakes, lr)?;
@@ -448,7 +464,9 @@ impl Trainer {
         draws: &GenDraws,
         split: f64,
     ) -> Result<Losses> {
-        let GenDraws { fakes: Draws { z, poses, noise, background, judged_z, judged_poses }, reg_rays, inject } = draws;
+        let GenDraws { fakes, reg_rays, inject } = draws;
+        let Draws { z, poses, noise, background, judged_z, judged_poses, patches } = fakes;
+        let judge = &Self::placed(judge, fakes);
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
@@ -457,7 +475,7 @@ impl Trainer {
         let fault = if *inject { f64::NAN } else { 1.0 };
         if stage.regions == 1 {
             let lat = gen.latents(z, z, None)?;
-            let (img, parts) = renderer.render_regions(&lat, poses, res, 1, noise)?;
+            let (img, parts) = render_fakes(&renderer, &lat, (poses, noise), stage, patches.as_ref().map(|p| &p.own))?;
             let img = self.judged_rows(&self.on_colours(&img, &parts, &renderer, background.as_ref()))?;
             let judged = Judged { img: &img, poses: judged_poses, z: Some(judged_z) };
             let mut losses = generator_judgement(gen, judge, &judged, (&lat, &parts), Some(reg_rays), at, cfg)?;
@@ -544,6 +562,14 @@ struct Draws {
     background: Option<Tensor>,
     judged_z: Tensor,
     judged_poses: Poses,
+    patches: Option<FakePatches>,
+}
+
+/// The scaled-patch step's patches of a player's fakes: this rank's, and `(n, 3)` the
+/// coordinates of the judged batch's ([`Placed`]).
+struct FakePatches {
+    own: StepPatches,
+    judged_at: Tensor,
 }
 
 /// The generator's random draws of one step ([`Trainer::generator_draws`]).
@@ -574,6 +600,10 @@ impl GenDraws {
                 background: f.background.as_ref().map(sl),
                 judged_z: f.judged_z.narrow(0, c * judged_len, judged_len),
                 judged_poses: f.judged_poses.narrow(c * judged_len, judged_len),
+                patches: f.patches.as_ref().map(|p| FakePatches {
+                    own: p.own.rows(c * len, len),
+                    judged_at: p.judged_at.narrow(0, c * judged_len, judged_len),
+                }),
             },
             reg_rays: sl(&self.reg_rays),
             inject: self.inject,

@@ -4,6 +4,7 @@
 //! The resolved config is saved in the run directory and inside every checkpoint.
 use crate::data::DataConfig;
 use crate::disc::DiscConfig;
+use crate::error::require;
 use crate::loss::LossConfig;
 use crate::{CameraConfig, Error, GeneratorConfig, RenderConfig, Result};
 use serde::{Deserialize, Serialize};
@@ -11,8 +12,8 @@ use std::path::Path;
 
 mod sections;
 pub use sections::{
-    cpu_has_bf16, DebugConfig, EmaConfig, GuardConfig, OptimConfig, Precision, SampleConfig, ScheduleConfig, Stage,
-    StepKind, TrainEvalConfig,
+    cpu_has_bf16, DebugConfig, EmaConfig, GuardConfig, OptimConfig, PatchConfig, Precision, SampleConfig,
+    ScheduleConfig, Stage, StepKind, TrainEvalConfig,
 };
 
 /// A whole training run.
@@ -290,6 +291,36 @@ impl TrainConfig {
         Ok(())
     }
 
+    /// A stage's `[stages.patch]` (under `key`): a patch size the discriminator takes, no
+    /// larger than the image; β in (0, ∞); whole-image bands only; a discriminator that can be
+    /// told where each patch lies.
+    fn validate_patch(&self, key: &str, st: &Stage, p: &PatchConfig) -> Result<()> {
+        if !(8..=st.resolution).contains(&p.size) || p.size.count_ones() != 1 {
+            return Err(cfg_err(format!(
+                "{key}.size is {}, expected a power of two from 8 to the stage's resolution ({})",
+                p.size, st.resolution
+            )));
+        }
+        for (k, v) in [("beta_start", p.beta_start), ("beta_end", p.beta_end)] {
+            require(v > 0.0 && v.is_finite(), &format!("{key}.{k}"), v, "a positive number")?;
+        }
+        require(p.anneal_images >= 0, &format!("{key}.anneal_images"), p.anneal_images, "0 or more")?;
+        if st.regions != 1 {
+            return Err(cfg_err(format!(
+                "{key} renders one patch per image, but the stage's regions is {}: expected 1",
+                st.regions
+            )));
+        }
+        if self.discriminator.kind != crate::disc::DiscKind::Release {
+            return Err(cfg_err(format!(
+                "{key} tells the discriminator where each patch lies through its coordinate channels, \
+                 which discriminator.kind = \"{}\" has not: expected \"release\"",
+                self.discriminator.kind.name()
+            )));
+        }
+        Ok(())
+    }
+
     /// Stage `i` (`stages[i]`), after the one before it: its resolution, samples, batch and
     /// split, bands, and learning rates, against the step kind, background and loss.
     fn validate_stage(&self, i: usize, st: &Stage) -> Result<()> {
@@ -353,6 +384,9 @@ impl TrainConfig {
                 st.resolution
             )));
         }
+        if let Some(p) = &st.patch {
+            self.validate_patch(&key("patch"), st, p)?;
+        }
         if let Some(v) = st.g_lr {
             if !(v >= 0.0 && v.is_finite()) {
                 return Err(cfg_err(format!(
@@ -378,13 +412,16 @@ impl TrainConfig {
         &self.stages[self.stage_index(step)]
     }
 
-    /// The step of the last resolution change at or before `step` (None before the first).
-    /// Only a change of resolution counts (the release's rule): a stage that changes only
-    /// N or the batch does not restart the fade-in.
+    /// The step of the last change of the discriminator's input size at or before `step`
+    /// (None before the first). Only a change of resolution counts (the release's rule): a
+    /// stage that changes only N or the batch does not restart the fade-in. Under scaled
+    /// patches the discriminator's input is the patch ([`Stage::judged_size`]): EpiGRAF's one
+    /// fixed-size discriminator, so a patch stage after a stage judging that size fades
+    /// nothing in, and one after a larger size returns to a path trained before.
     pub fn switch_step(&self, step: i64) -> Option<i64> {
         self.stages
             .windows(2)
-            .filter(|w| w[1].resolution != w[0].resolution && w[1].from_step <= step)
+            .filter(|w| w[1].judged_size() > w[0].judged_size() && w[1].from_step <= step)
             .map(|w| w[1].from_step)
             .next_back()
     }

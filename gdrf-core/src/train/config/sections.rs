@@ -32,6 +32,49 @@ pub struct Stage {
     pub g_lr: Option<f64>,
     #[serde(default)]
     pub d_lr: Option<f64>,
+    /// The scaled-patch step (`[stages.patch]`): the generator renders, and the
+    /// discriminator judges, one `size²` patch of each `resolution²` image instead of the
+    /// whole image, so that a step costs what a `size²` step costs. Absent: whole images.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub patch: Option<PatchConfig>,
+}
+
+impl Stage {
+    /// The side of the images the discriminator judges: the patch's, or the image's.
+    pub fn judged_size(&self) -> i64 {
+        self.patch.as_ref().map_or(self.resolution, |p| p.size)
+    }
+
+    /// The side of what the generator renders for the adversarial terms (the same).
+    pub fn rendered_size(&self) -> i64 {
+        self.judged_size()
+    }
+}
+
+/// EpiGRAF's patch sampling (Skorokhodov et al. 2022, `sample_patch_params_beta`): each
+/// patch's scale s = P/R + (1 − P/R)·Beta(1, β), of the image's side, its top-left offset
+/// uniform in [0, 1 − s]². β rises linearly from `beta_start` to `beta_end` over
+/// `anneal_images` images from the step the scaled patches began at this resolution:
+/// Beta(1, 0.001) is almost always 1 (whole images, resized to P²), so training starts from
+/// what the P² stage learned and drifts toward native-resolution crops (mean s at β = 0.8
+/// and P/R = ½: 0.78).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PatchConfig {
+    /// Side P of every patch, a power of two from 8 to the stage's resolution.
+    pub size: i64,
+    pub beta_start: f64,
+    pub beta_end: f64,
+    /// Images over which β anneals (0: `beta_end` from the start).
+    pub anneal_images: i64,
+}
+
+impl Default for PatchConfig {
+    fn default() -> Self {
+        // EpiGRAF anneals over 10 000 kimg from scratch; a generator that already learned at
+        // P² starts from whole images it knows, and a CPU sees ~1 M images a day.
+        Self { size: 32, beta_start: 0.001, beta_end: 0.8, anneal_images: 200_000 }
+    }
 }
 
 fn one() -> i64 {
