@@ -497,7 +497,7 @@ fn the_campaign_patch_config_differs_from_the_cpu_one_in_the_64_stages_patches_o
     let cpu = TrainConfig::load(&dir.join("chairs-campaign-cpu.toml")).unwrap();
     let mut patch = TrainConfig::load(&dir.join("chairs-campaign-cpu-patch.toml")).unwrap();
     let p = patch.stages[2].patch.clone().expect("the 64² stage's patches");
-    assert_eq!((p.size, p.beta_start, p.beta_end, p.anneal_images), (32, 0.001, 0.8, 200_000));
+    assert_eq!((p.size, p.beta_start, p.beta_end, p.anneal_images), (32, 0.001, 0.8, 80_000));
     assert_eq!((patch.stages[2].from_step, patch.stages[2].resolution), (205_046, 64));
     assert_eq!(patch.switch_step(205_046), None);
     assert_eq!(patch.alpha(205_046), 1.0);

@@ -251,14 +251,16 @@ impl Trainer {
         real: &Tensor,
         real_poses: Option<&Tensor>,
     ) -> Result<Losses> {
-        let (b, res) = (real.size()[0], stage.resolution);
+        let (b, res) = (real.size()[0], stage.rendered_size());
         let k = self.cfg.loss.coverage_candidates;
         let latent = self.cfg.generator.latent_dim as i64;
         let shape = [b, res * res, stage.num_steps as i64];
+        let (first, n) = self.shard(b);
         let draws = CoverageDraws {
             candidates: self.own_rows(&self.rng(step, Purpose::CoverageCodes).normal(&[b * k, latent]), k),
             jitter: self.own_rows(&self.rng(step, Purpose::CoverageJitter).uniform(&shape), 1),
             importance: self.own_rows(&self.rng(step, Purpose::CoverageImportance).uniform(&shape), 1),
+            patches: self.step_patches(stage, step).map(|p| (p.rows(first, n).all, p.size)),
         };
         let real = self.own_rows(real, 1);
         let real_poses = real_poses.map(|p| self.own_rows(p, 1));
