@@ -307,7 +307,7 @@ fn prepare_data(trainer: &Trainer, rank: Option<&gdrf_core::dist::Launch>, write
 fn announce(trainer: &mut Trainer, threads: usize, writer: bool) -> Result<()> {
     let cfg = trainer.cfg().clone();
     let stage = cfg.stage(trainer.progress().step);
-    let (g_params, d_all, d_used) = trainer.parameter_counts(stage.resolution);
+    let (g_params, d_all, d_used) = trainer.parameter_counts(stage.judged_size());
     let n_images = trainer.dataset(stage.resolution)?.len();
     if !writer {
         return Ok(());
@@ -331,10 +331,13 @@ fn announce(trainer: &mut Trainer, threads: usize, writer: bool) -> Result<()> {
              set precision = \"auto\" or \"float32\""
         );
     }
+    let judged = match &stage.patch {
+        Some(p) => format!("{}² patches of {}² images", p.size, stage.resolution),
+        None => format!("{}²", stage.resolution),
+    };
     println!(
-        "generator {g_params} parameters, discriminator {d_all} ({d_used} used at {r}²); {n_images} training images from {}",
+        "generator {g_params} parameters, discriminator {d_all} ({d_used} used at {judged}); {n_images} training images from {}",
         cfg.data.path.display(),
-        r = stage.resolution
     );
     Ok(())
 }

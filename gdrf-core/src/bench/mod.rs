@@ -23,6 +23,8 @@ pub mod losses;
 pub mod render;
 #[cfg(feature = "cli")]
 pub mod step;
+#[cfg(feature = "cli")]
+pub mod step_summary;
 
 pub use crate::stats::median;
 

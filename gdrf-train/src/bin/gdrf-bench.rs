@@ -1,7 +1,7 @@
 //! gdrf-bench: benchmarks run side by side with the PyTorch reference (scripts/reference/),
 //! printing medians and ratios and writing JSON and a bar chart (gdrf_core::bench).
 use clap::{Parser, Subcommand};
-use gdrf_core::bench::{allreduce, losses, step};
+use gdrf_core::bench::{allreduce, losses, step, step_summary};
 
 #[derive(Parser)]
 #[command(version, about = "Benchmarks of gdrf against the PyTorch reference, in one run.")]
@@ -25,6 +25,9 @@ enum Bench {
     /// (SLEEF). `--nproc N`: data-parallel scaling, N ranks of one thread against one
     /// process of N.
     Step(step::Options),
+    /// Several `step` outputs side by side (e.g. the full-image step at 32², 64² and 128²
+    /// and the scaled-patch step): a table, STEM.json and a bar chart STEM.png.
+    StepSummary(step_summary::Options),
     /// The gradient all-reduce of data-parallel training (a config's generator and
     /// discriminator parameters, Gloo over loopback, one thread a rank) against the bucket
     /// size, through gdrf's c10d bridge and through torch.distributed.
@@ -35,6 +38,7 @@ fn main() {
     let result = match Cli::parse().command {
         Bench::Losses(a) => losses::run(&a).map(drop),
         Bench::Step(a) => step::run(&a).map(drop),
+        Bench::StepSummary(a) => step_summary::run(&a).map(drop),
         Bench::Allreduce(a) => allreduce::run(&a).map(drop),
     };
     if let Err(e) = result {
