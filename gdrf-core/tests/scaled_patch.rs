@@ -4,13 +4,11 @@
 //! exactly across the switch and after a resume.
 mod common;
 
-use common::{assert_close, TempDir};
+use common::{assert_close, copy_dir, params, run_steps, same_params, TempDir};
 use gdrf_core::camera::patch::{real_patches, Patch};
-use gdrf_core::train::{PatchConfig, RunLimits, StepReport, Stopped, TrainConfig, Trainer};
+use gdrf_core::train::{PatchConfig, TrainConfig, Trainer};
 use gdrf_core::Background;
 use std::path::Path;
-use std::sync::atomic::AtomicBool;
-use tch::{nn, Tensor};
 
 /// A tiny model on 16 procedural chairs at 16²: 8² whole images for `switch` steps (none
 /// when 0), then 16² images, whole or (with `patch`) in 8² scaled patches. The campaign's step: one
@@ -61,24 +59,6 @@ shadows = false
 
 fn patch(beta_start: f64, beta_end: f64, anneal_images: i64) -> Option<PatchConfig> {
     Some(PatchConfig { size: 8, beta_start, beta_end, anneal_images })
-}
-
-fn run_steps(t: &mut Trainer, n: i64) -> Vec<StepReport> {
-    let mut reports = Vec::new();
-    let never = AtomicBool::new(false);
-    let stopped = t.run(RunLimits { steps: Some(n), seconds: None }, &never, |r, _| reports.push(r.clone())).unwrap();
-    assert_eq!(stopped, Stopped::Limit);
-    reports
-}
-
-fn params(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
-    let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-    v.sort_by(|a, b| a.0.cmp(&b.0));
-    v
-}
-
-fn same_params(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.0 == y.0 && x.1.equal(&y.1))
 }
 
 /// The discriminator is shown the real images resampled at the step's patches: at β → 0
@@ -185,16 +165,4 @@ fn bad_patch_settings_are_named() {
     cfg.discriminator.kind = gdrf_core::disc::DiscKind::Projected;
     let e = cfg.validate().unwrap_err().to_string();
     assert!(e.contains("stages[1].patch") && e.contains("\"projected\""), "{e}");
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }

@@ -4,7 +4,7 @@
 //! newest checkpoint, and the two-pass patch step giving the single-pass gradient.
 mod common;
 
-use common::TempDir;
+use common::{copy_dir, params, run_steps, same_params, TempDir};
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::disc::augment::Augmentation;
 use gdrf_core::disc::DiscKind;
@@ -14,7 +14,7 @@ use gdrf_core::train::{run, RunLimits, StepReport, Stopped, TrainConfig, Trainer
 use gdrf_core::Background;
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use tch::{nn, Device, Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 /// A tiny model on 16 procedural chairs at 16², rendered at 8² then 16².
 fn tiny_config(dir: &Path, extra: &str) -> TrainConfig {
@@ -56,23 +56,6 @@ shadows = false
 
 fn never() -> AtomicBool {
     AtomicBool::new(false)
-}
-
-fn run_steps(t: &mut Trainer, n: i64) -> Vec<StepReport> {
-    let mut reports = Vec::new();
-    let stopped = t.run(RunLimits { steps: Some(n), seconds: None }, &never(), |r, _| reports.push(r.clone())).unwrap();
-    assert_eq!(stopped, Stopped::Limit);
-    reports
-}
-
-fn params(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
-    let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
-    v.sort_by(|a, b| a.0.cmp(&b.0));
-    v
-}
-
-fn same_params(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.0 == y.0 && x.1.equal(&y.1))
 }
 
 #[test]
@@ -840,16 +823,4 @@ fn a_run_switches_to_random_backgrounds_and_resumes_exactly() {
     assert_eq!(ckpts.iter().map(|c| c.0).collect::<Vec<_>>(), [2, 6]);
     let before = load_generator(&ckpts[0].1, Device::Cpu, Kind::Float).unwrap();
     assert_eq!(before.generator.cfg.background, Background::Learned);
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }

@@ -119,7 +119,7 @@ impl Trainer {
     /// `[codes, poses, jitter, importance, background]`, with the step's patches under the
     /// scaled-patch step.
     fn fake_draws(&self, stage: &Stage, step: i64, purposes: [Purpose; 5]) -> Draws {
-        let (b, res, n) = (stage.batch_size, stage.rendered_size(), stage.num_steps as i64);
+        let (b, res, n) = (stage.batch_size, stage.judged_size(), stage.num_steps as i64);
         let [codes, poses, jitter, importance, background] = purposes;
         let z = self.rng(step, codes).normal(&[b, self.cfg.generator.latent_dim as i64]);
         let poses = Poses::sample_from(&self.cfg.camera, b, &mut self.rng(step, poses));
@@ -251,7 +251,7 @@ impl Trainer {
         real: &Tensor,
         real_poses: Option<&Tensor>,
     ) -> Result<Losses> {
-        let (b, res) = (real.size()[0], stage.rendered_size());
+        let (b, res) = (real.size()[0], stage.judged_size());
         let k = self.cfg.loss.coverage_candidates;
         let latent = self.cfg.generator.latent_dim as i64;
         let shape = [b, res * res, stage.num_steps as i64];
@@ -312,7 +312,7 @@ impl Trainer {
     /// pose and depths while the mode-seeking term is on, so that a pair's difference is
     /// its codes' alone), the regulariser rays, and whether a fault is injected.
     fn generator_draws(&mut self, stage: &Stage, step: i64) -> GenDraws {
-        let (b, res) = (stage.batch_size, stage.rendered_size());
+        let (b, res) = (stage.batch_size, stage.judged_size());
         let purposes =
             [Purpose::GenCodes, Purpose::GenPoses, Purpose::GenJitter, Purpose::GenImportance, Purpose::GenBackground];
         let mut fakes = self.fake_draws(stage, step, purposes);

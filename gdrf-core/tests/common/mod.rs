@@ -239,3 +239,38 @@ pub fn checkpoint_names(run: &Path) -> Vec<String> {
     v.sort();
     v
 }
+
+/// Runs `t` for `n` steps (never interrupted) and returns their reports.
+pub fn run_steps(t: &mut gdrf_core::train::Trainer, n: i64) -> Vec<gdrf_core::train::StepReport> {
+    let mut reports = Vec::new();
+    let never = std::sync::atomic::AtomicBool::new(false);
+    let limits = gdrf_core::train::RunLimits { steps: Some(n), seconds: None };
+    let stopped = t.run(limits, &never, |r, _| reports.push(r.clone())).unwrap();
+    assert_eq!(stopped, gdrf_core::train::Stopped::Limit);
+    reports
+}
+
+/// A var store's variables, detached copies sorted by name.
+pub fn params(vs: &tch::nn::VarStore) -> Vec<(String, Tensor)> {
+    let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (n, t.detach().copy())).collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+/// Whether two [`params`] lists hold the same names and bit-equal values.
+pub fn same_params(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.0 == y.0 && x.1.equal(&y.1))
+}
+
+/// Copies the folder `from` to `to`, recursively.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}

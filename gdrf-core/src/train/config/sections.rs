@@ -40,14 +40,10 @@ pub struct Stage {
 }
 
 impl Stage {
-    /// The side of the images the discriminator judges: the patch's, or the image's.
+    /// The side of the images the discriminator judges, and so of what the generator
+    /// renders for it: the patch's, or the image's.
     pub fn judged_size(&self) -> i64 {
         self.patch.as_ref().map_or(self.resolution, |p| p.size)
-    }
-
-    /// The side of what the generator renders for the adversarial terms (the same).
-    pub fn rendered_size(&self) -> i64 {
-        self.judged_size()
     }
 }
 
