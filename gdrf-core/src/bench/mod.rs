@@ -1,5 +1,6 @@
 //! The benchmark commands (`gdrf-edit bench`: `render`, `gdrf-invert bench`: `invert`,
-//! `gdrf-bench losses`, `step` and `allreduce`: `losses`, `step`, `allreduce`) and what they share: medians, the
+//! `gdrf-bench losses`, `step`, `shared-grid` and `allreduce`: `losses`, `step`,
+//! `shared_grid`, `allreduce`) and what they share: medians, the
 //! process's peak memory, running a PyTorch reference script (`scripts/reference/`) with
 //! the project's Python, and writing their JSON.
 //!
@@ -21,6 +22,8 @@ pub mod invert;
 pub mod losses;
 #[cfg(feature = "cli")]
 pub mod render;
+#[cfg(feature = "cli")]
+pub mod shared_grid;
 #[cfg(feature = "cli")]
 pub mod step;
 #[cfg(feature = "cli")]

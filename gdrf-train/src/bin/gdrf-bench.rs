@@ -1,7 +1,7 @@
 //! gdrf-bench: benchmarks run side by side with the PyTorch reference (scripts/reference/),
 //! printing medians and ratios and writing JSON and a bar chart (gdrf_core::bench).
 use clap::{Parser, Subcommand};
-use gdrf_core::bench::{allreduce, losses, step, step_summary};
+use gdrf_core::bench::{allreduce, losses, shared_grid, step, step_summary};
 
 #[derive(Parser)]
 #[command(version, about = "Benchmarks of gdrf against the PyTorch reference, in one run.")]
@@ -32,6 +32,11 @@ enum Bench {
     /// discriminator parameters, Gloo over loopback, one thread a rank) against the bucket
     /// size, through gdrf's c10d bridge and through torch.distributed.
     Allreduce(allreduce::Options),
+    /// What a training-time occupancy grid shared by all shape codes (nerfacc's grid, the
+    /// maximum over codes) would let a step skip: the union of 1, 2, 4, … codes' own grids
+    /// at each density threshold, walked by training rays; the share of rays that meet it
+    /// and of the ray interval it keeps (one code's own grid beside it). No timing.
+    SharedGrid(shared_grid::Options),
 }
 
 fn main() {
@@ -40,6 +45,7 @@ fn main() {
         Bench::Step(a) => step::run(&a).map(drop),
         Bench::StepSummary(a) => step_summary::run(&a).map(drop),
         Bench::Allreduce(a) => allreduce::run(&a).map(drop),
+        Bench::SharedGrid(a) => shared_grid::run(&a).map(drop),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
