@@ -51,11 +51,17 @@ pub fn output_dir(dir: &Path, force: bool, flag: &str) -> Result<()> {
 }
 
 pub fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
+    let bytes = png_bytes(img).map_err(|e| Error::Invalid(format!("{}: {e}", path.display())))?;
+    write_atomic(path, &bytes)
+}
+
+/// An 8-bit RGB image encoded as PNG, in memory.
+pub fn png_bytes(img: &image::RgbImage) -> Result<Vec<u8>> {
     let mut bytes = Vec::new();
     image::DynamicImage::ImageRgb8(img.clone())
         .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .map_err(|e| Error::Invalid(format!("{}: PNG encoding failed: {e}", path.display())))?;
-    write_atomic(path, &bytes)
+        .map_err(|e| Error::Invalid(format!("PNG encoding failed: {e}")))?;
+    Ok(bytes)
 }
 
 /// Maps `values: (1, H, W)` in [0, 1] (clamped; NaN → 0) through viridis to an image
@@ -95,8 +101,14 @@ pub fn depth_map(depth: &Tensor, near: f64, far: f64) -> Tensor {
 
 /// Writes frames as an endlessly looping animated GIF (`delay_ms` per frame), atomically.
 pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Result<()> {
+    let bytes = gif_bytes(frames, delay_ms).map_err(|e| Error::Invalid(format!("{}: {e}", path.display())))?;
+    write_atomic(path, &bytes)
+}
+
+/// Frames encoded as an endlessly looping animated GIF (`delay_ms` per frame), in memory.
+pub fn gif_bytes(frames: &[image::RgbImage], delay_ms: u32) -> Result<Vec<u8>> {
     use image::codecs::gif::{GifEncoder, Repeat};
-    let fail = |e: image::ImageError| Error::Invalid(format!("{}: GIF encoding failed: {e}", path.display()));
+    let fail = |e: image::ImageError| Error::Invalid(format!("GIF encoding failed: {e}"));
     let mut bytes = Vec::new();
     {
         let mut enc = GifEncoder::new_with_speed(&mut bytes, 10);
@@ -107,7 +119,7 @@ pub fn save_gif(path: &Path, frames: &[image::RgbImage], delay_ms: u32) -> Resul
             enc.encode_frame(image::Frame::from_parts(rgba, 0, 0, delay)).map_err(fail)?;
         }
     }
-    write_atomic(path, &bytes)
+    Ok(bytes)
 }
 
 /// `(B, 3, H, W)` → `(B, 3, res, res)`: antialiased bilinear when shrinking.

@@ -2,6 +2,7 @@
 //! taken from different codes. `gdrf-edit --shape-from A --appearance-from B` is the swap.
 mod mesh_cmd;
 mod model;
+mod serve;
 mod swap;
 
 use anyhow::{bail, Context, Result};
@@ -59,6 +60,11 @@ enum Command {
     /// (optionally another source's appearance: texture transfer) or the template-space
     /// position as vertex colour (correspondences across shapes).
     Mesh(mesh_cmd::MeshArgs),
+    /// A local web server with a page to orbit a chair, choose its shape and its
+    /// appearance apart (seeds, feature files, dropped photos), interpolate them and
+    /// download the image, an orbit GIF, a mesh, features or a swap matrix. Listens on
+    /// 127.0.0.1:8470 unless --host and --port say otherwise; prints the address.
+    Serve(serve::ServeArgs),
 }
 
 #[derive(Args)]
@@ -117,6 +123,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Features(a)) => swap::features(a),
         Some(Command::Interp(a)) => swap::interp(a),
         Some(Command::Mesh(a)) => mesh_cmd::mesh(a),
+        Some(Command::Serve(a)) => serve::serve(a),
     }
 }
 

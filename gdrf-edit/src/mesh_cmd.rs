@@ -1,14 +1,15 @@
 //! `gdrf-edit mesh`: an isosurface of a source's final density, coloured by the generator or
 //! by each vertex's template-space position (x + Δx), so that corresponding parts of
 //! different shapes get the same colour.
-use crate::model::{open, resolve, ModelArgs};
+use crate::model::{open, resolve, Model, ModelArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gdrf_core::camera::{camera_origins, normalize, Poses};
 use gdrf_core::edit::{latents, Source};
 use gdrf_core::field::generator::FieldOptions;
-use gdrf_core::mesh::{isosurface, sample_density, template_colour, Grid};
+use gdrf_core::mesh::{isosurface, sample_density, template_colour, Grid, Mesh};
 use gdrf_core::render::occupancy::camera_half_extent;
+use gdrf_core::Latents;
 use std::path::PathBuf;
 use std::time::Instant;
 use tch::{Kind, Tensor};
@@ -73,8 +74,32 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     let trunc = g.truncation_at(a.psi);
     let lat = latents(g, &shape, other.as_ref().unwrap_or(&shape), trunc.as_ref());
     let start = Instant::now();
+    let (mesh, threshold) = build(&model, &lat, (a.resolution, a.threshold), a.colour)?;
+    mesh.save(&a.out).with_context(|| format!("writing --out {}", a.out.display()))?;
+    println!(
+        "{} vertices, {} triangles at density {} from a {}³ grid in {:.2} s ({threads} threads) -> {}",
+        mesh.vertices.len(),
+        mesh.triangles.len(),
+        threshold,
+        a.resolution,
+        start.elapsed().as_secs_f64(),
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// The isosurface of `lat`'s density on a `resolution`³ grid over the camera's cube, at
+/// density `threshold` (default: 10, or halfway through the densities' range when they do
+/// not reach 10, said on stderr), with `colour` vertex colours; and the threshold used.
+pub fn build(
+    model: &Model,
+    lat: &Latents,
+    (resolution, threshold): (usize, Option<f32>),
+    colour: Colour,
+) -> Result<(Mesh, f32)> {
+    let g = &model.generator;
     let half = camera_half_extent(&model.camera);
-    let n = a.resolution;
+    let n = resolution;
     let values = sample_density(g, &lat.shape, FieldOptions::default(), half, n, 1 << 15)?;
     let spacing = (2.0 * half / (n - 1) as f64) as f32;
     let grid = Grid { values: &values, dims: [n; 3], origin: [-half as f32; 3], spacing };
@@ -82,7 +107,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         .iter()
         .filter(|v| v.is_finite())
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| (l.min(v), h.max(v)));
-    let threshold = match a.threshold {
+    let threshold = match threshold {
         Some(t) => t,
         None if lo < 10.0 && hi > 10.0 => 10.0,
         None => {
@@ -97,13 +122,13 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     if mesh.triangles.is_empty() {
         bail!("no surface at density {threshold} (the grid's densities span {lo:.3e} to {hi:.3e}); pick --threshold inside that range");
     }
-    if a.colour != Colour::None {
+    if colour != Colour::None {
         let (kind, device) = g.kind_device();
         let flat: Vec<f32> = mesh.vertices.iter().flatten().copied().collect();
         let x = Tensor::from_slice(&flat).view([1, -1, 3]).to_kind(kind).to_device(device);
         let colours = tch::no_grad(|| {
             let d = g.density(&x, &lat.shape, FieldOptions::default());
-            match a.colour {
+            match colour {
                 Colour::Template => template_colour(&d.x_template, half),
                 _ => {
                     let pose = Poses::from_angles(&[(model.camera.v_mean, 0.0)], kind, device);
@@ -115,14 +140,5 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         let c = Vec::<f32>::try_from(colours.to_kind(Kind::Float).view([-1]))?;
         mesh.colours = Some(c.chunks(3).map(|v| [v[0], v[1], v[2]]).collect());
     }
-    mesh.save(&a.out).with_context(|| format!("writing --out {}", a.out.display()))?;
-    println!(
-        "{} vertices, {} triangles at density {} from a {n}³ grid in {:.2} s ({threads} threads) -> {}",
-        mesh.vertices.len(),
-        mesh.triangles.len(),
-        threshold,
-        start.elapsed().as_secs_f64(),
-        a.out.display()
-    );
-    Ok(())
+    Ok((mesh, threshold))
 }

@@ -122,41 +122,51 @@ pub struct PhotoSettings {
 
 pub fn resolve(model: &Model, source: &Source, flag: &str) -> Result<Features> {
     match source {
-        Source::Image(p) => {
-            let ph = &model.photo;
-            let chosen = match (&ph.generator_path, &ph.init) {
-                (Some(g), init) => choice::open(init, "--photo-init", g, &model.id, model.device)?,
-                // A random generator has no initialiser beside it; a file given with
-                // --photo-init is still opened (and refused by the generator's identity).
-                (None, InitChoice::Beside) => {
-                    choice::open(&InitChoice::None, "--photo-init", Path::new("random"), &model.id, model.device)?
-                }
-                (None, init) => choice::open(init, "--photo-init", Path::new("random"), &model.id, model.device)?,
-            };
-            eprintln!(
-                "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray); {}",
-                p.display(),
-                ph.cfg.steps,
-                ph.cfg.resolution,
-                ph.cfg.samples,
-                ph.cfg.samples,
-                chosen.said
-            );
-            let (f, from) = gdrf_core::invert::features_of_photo(
-                &model.generator,
-                &model.camera,
-                p,
-                ph.pose,
-                chosen.init.as_ref(),
-                RefinePose::Auto,
-                &ph.cfg,
-            )
-            .with_context(|| format!("{flag} {}", p.display()))?;
-            if let Some(pose) = f.pose {
-                eprintln!("{flag}: {}", choice::describe_pose(pose, from, RefinePose::Auto.resolve(from)));
-            }
-            Ok(f)
-        }
+        Source::Image(p) => invert_photo(model, p, flag, &mut |_| {}),
         _ => Features::resolve(source, &model.generator, &model.id).with_context(|| flag.to_string()),
     }
+}
+
+/// The features of photo `p`, inverted as the model's photo settings say, telling
+/// `progress` each optimisation step; `flag` names the photo's origin in messages.
+pub fn invert_photo(
+    model: &Model,
+    p: &Path,
+    flag: &str,
+    progress: &mut dyn FnMut(&gdrf_core::invert::StepLog),
+) -> Result<Features> {
+    let ph = &model.photo;
+    let chosen = match (&ph.generator_path, &ph.init) {
+        (Some(g), init) => choice::open(init, "--photo-init", g, &model.id, model.device)?,
+        // A random generator has no initialiser beside it; a file given with
+        // --photo-init is still opened (and refused by the generator's identity).
+        (None, InitChoice::Beside) => {
+            choice::open(&InitChoice::None, "--photo-init", Path::new("random"), &model.id, model.device)?
+        }
+        (None, init) => choice::open(init, "--photo-init", Path::new("random"), &model.id, model.device)?,
+    };
+    eprintln!(
+        "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray); {}",
+        p.display(),
+        ph.cfg.steps,
+        ph.cfg.resolution,
+        ph.cfg.samples,
+        ph.cfg.samples,
+        chosen.said
+    );
+    let (f, from) = gdrf_core::invert::features_of_photo(
+        &model.generator,
+        &model.camera,
+        p,
+        ph.pose,
+        chosen.init.as_ref(),
+        RefinePose::Auto,
+        &ph.cfg,
+        progress,
+    )
+    .with_context(|| format!("{flag} {}", p.display()))?;
+    if let Some(pose) = f.pose {
+        eprintln!("{flag}: {}", choice::describe_pose(pose, from, RefinePose::Auto.resolve(from)));
+    }
+    Ok(f)
 }

@@ -501,8 +501,9 @@ pub fn start_for_photo(
 
 /// A photo file as an editing source: loaded (centre-cropped, on white), inverted with `cfg`
 /// from [`start_for_photo`]'s start with `init`, the pose refined as `refine` says, with the
-/// EfficientNet-Lite0 perceptual distance when `cfg.perceptual_weight` is not 0. Returns the
-/// features and where the pose came from.
+/// EfficientNet-Lite0 perceptual distance when `cfg.perceptual_weight` is not 0, telling
+/// `progress` each optimisation step. Returns the features and where the pose came from.
+#[allow(clippy::too_many_arguments)]
 pub fn features_of_photo(
     g: &Generator,
     camera: &CameraConfig,
@@ -511,6 +512,7 @@ pub fn features_of_photo(
     init: Option<&init::Initialiser>,
     refine: choice::RefinePose,
     cfg: &InvertConfig,
+    progress: &mut dyn FnMut(&StepLog),
 ) -> Result<(Features, PoseFrom)> {
     let (_, device) = g.kind_device();
     let photo = photo::load_photo(path, None, photo::Fit::Crop, cfg.resolution, device)?;
@@ -523,7 +525,7 @@ pub fn features_of_photo(
     } else {
         None
     };
-    let f = invert(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), &mut |_| {})?.features;
+    let f = invert(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), progress)?.features;
     Ok((f, started.pose_from))
 }
 
