@@ -29,6 +29,21 @@ if ! command -v c++ >/dev/null 2>&1 && ! command -v g++ >/dev/null 2>&1; then
     || die "could not install g++ with apt-get; install a C++ compiler and re-run scripts/setup.sh."
 fi
 
+# A real browser for gdrf-edit serve's browser tests (headless Chromium through WebDriver),
+# from Debian's packages. Where apt-get is missing or refuses, setup goes on and those
+# tests fail, naming what is missing.
+if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; then
+  sudo=""
+  [ "$(id -u)" = 0 ] || sudo="sudo -n"
+  if command -v apt-get >/dev/null 2>&1; then
+    say "installing Debian's chromium and chromium-driver for the browser tests (about 100 MB)"
+    { $sudo apt-get install -y -q chromium chromium-driver >/dev/null 2>&1 || { $sudo apt-get update -q >/dev/null 2>&1 && $sudo apt-get install -y -q chromium chromium-driver >/dev/null 2>&1; }; } \
+      || say "could not install chromium and chromium-driver with apt-get: the browser tests will fail until they are installed"
+  else
+    say "no apt-get: install chromium and chromedriver for the browser tests (gdrf-edit/tests/browser.rs)"
+  fi
+fi
+
 if [ ! -x "$venv/bin/python" ]; then
   say "creating the Python environment in .venv"
   "$python" -m venv "$venv" || die "could not create a virtual environment with '$python -m venv'. On Debian/Ubuntu install python3-venv."

@@ -76,16 +76,25 @@ impl Answer {
 /// One request on a fresh connection (`Connection: close`), the whole answer read.
 pub fn request(port: u16, method: &str, path: &str, host: &str, body: &[u8]) -> Answer {
     let mut s = TcpStream::connect(("127.0.0.1", port)).expect("connects");
-    s.set_read_timeout(Some(Duration::from_secs(600))).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(300))).unwrap();
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
         body.len()
     );
     s.write_all(head.as_bytes()).unwrap();
     s.write_all(body).unwrap();
+    // Read the head, then exactly the body it announces: a server may keep the connection
+    // open whatever the request said (chromedriver does).
     let mut raw = Vec::new();
-    s.read_to_end(&mut raw).expect("an answer");
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("a header");
+    let mut buf = [0u8; 65536];
+    let split = loop {
+        if let Some(p) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
+            break p;
+        }
+        let n = s.read(&mut buf).expect("an answer");
+        assert!(n > 0, "the connection closed before the answer's head ended");
+        raw.extend_from_slice(&buf[..n]);
+    };
     let head = String::from_utf8_lossy(&raw[..split]).into_owned();
     let mut lines = head.lines();
     let status = lines.next().and_then(|l| l.split(' ').nth(1)).and_then(|c| c.parse().ok()).expect("a status");
@@ -94,7 +103,24 @@ pub fn request(port: u16, method: &str, path: &str, host: &str, body: &[u8]) -> 
         .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
         .collect();
     let mut body = raw[split + 4..].to_vec();
-    if headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked")) {
+    let length = headers.iter().find(|(k, _)| k == "content-length").and_then(|(_, v)| v.parse::<usize>().ok());
+    let chunked = headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked"));
+    loop {
+        let complete = match (length, chunked) {
+            (Some(n), _) => body.len() >= n,
+            (None, true) => body.ends_with(b"0\r\n\r\n"),
+            (None, false) => false,
+        };
+        if complete {
+            break;
+        }
+        let n = s.read(&mut buf).expect("the answer's body");
+        if n == 0 {
+            break;
+        }
+        body.extend_from_slice(&buf[..n]);
+    }
+    if chunked {
         body = dechunk(&body);
     }
     Answer { status, headers, body }
