@@ -8,6 +8,8 @@
 #   docs/images/invert-chairs-campaign.png      a held-out photo inverted: photo, reconstruction,
 #                                               four novel views, its appearance on seed 0's shape
 #   docs/images/invert-orbit-chairs-campaign.gif  the inverted features' 12-view orbit (32²)
+#   docs/images/serve.png                       gdrf-edit serve's page in headless Chromium, after
+#                                               its browser test (turned, swapped, a photo inverted)
 # Intermediate outputs go to out/figures/. Release binaries: 2 min 21 s on two cores.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -57,5 +59,8 @@ for k, t in enumerate(tiles):
 strip.save(out + ".tmp.png")
 os.replace(out + ".tmp.png", out)
 EOF
-echo "figures: $dir/turntable-64.png, $dir/swap-matrix-64.png, docs/images/{orbit,eval,invert,invert-orbit}-chairs-campaign.*"
+# The viewer's page as its browser test leaves it (needs chromium and chromedriver).
+GDRF_SCREENSHOT="$tmp/serve.png" cargo test --quiet -p gdrf-edit --test browser the_page_turns >/dev/null
+place "$tmp/serve.png" docs/images/serve.png
+echo "figures: $dir/turntable-64.png, $dir/swap-matrix-64.png, docs/images/{orbit,eval,invert,invert-orbit}-chairs-campaign.*, docs/images/serve.png"
 echo "         the inversion's PSNR and time: $tmp/invert/invert.json"

@@ -65,6 +65,11 @@ enum Command {
     /// download the image, an orbit GIF, a mesh, features or a swap matrix. Listens on
     /// 127.0.0.1:8470 unless --host and --port say otherwise; prints the address.
     Serve(serve::ServeArgs),
+    /// Frame times of `serve` over HTTP (median and 95th percentile) at several
+    /// resolutions while orbiting, moving an appearance slider and moving a shape slider,
+    /// then a load test (simulated users for a bounded time: requests, errors, latency,
+    /// the server's peak memory). Writes STEM.json, STEM.png and STEM-load.json.
+    ServeBench(serve::bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -124,6 +129,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Interp(a)) => swap::interp(a),
         Some(Command::Mesh(a)) => mesh_cmd::mesh(a),
         Some(Command::Serve(a)) => serve::serve(a),
+        Some(Command::ServeBench(a)) => serve::bench::bench(a),
     }
 }
 

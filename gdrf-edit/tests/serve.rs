@@ -86,8 +86,10 @@ fn serves_the_page_renders_exports_and_refuses_bad_requests_naming_them() {
     // A feature file of the --features folder is its seed's features.
     assert_eq!(view("shape=features:seven.safetensors&yaw=10"), view("shape=seed:7&yaw=10"));
     assert_eq!(view("shape=seed:7&yaw=10").dimensions(), (32, 32), "the default is where the model learned");
-    // Interpolation: the ends are the sources.
-    assert_eq!(view("shape=seed:3&shape_b=seed:4&shape_t=0&yaw=50"), view("shape=seed:3&yaw=50"));
+    // Interpolation: the ends are the sources (shapes not shown before, so that both
+    // render the same way: a shape's first frame has no grid yet).
+    assert_eq!(view("shape=seed:12&shape_b=seed:13&shape_t=0&yaw=50"), view("shape=seed:12&yaw=50"));
+    assert_ne!(view("shape=seed:14&shape_b=seed:13&shape_t=0.5&yaw=50"), view("shape=seed:14&yaw=50"));
 
     // Bad requests: a 4xx naming the parameter, and the server goes on.
     for (path, status, names) in [
@@ -113,7 +115,7 @@ fn serves_the_page_renders_exports_and_refuses_bad_requests_naming_them() {
         assert!(message.contains(names), "{path}: {message}");
     }
     // DNS rebinding: a request whose Host is not the server's.
-    let r = support::request(s.port, "GET", "/api/info", &format!("evil.example:{}", s.port), &[]);
+    let r = support::request(s.port(), "GET", "/api/info", &format!("evil.example:{}", s.port()), &[]);
     assert_eq!(r.status, 403);
     assert!(r.json()["error"].as_str().unwrap().contains("Host 'evil.example"), "{}", r.text());
     assert_eq!(s.get("/api/info").status, 200, "the server goes on");

@@ -179,8 +179,12 @@ pub fn interpolate(g: &Generator, a: &Features, b: &Features, t: f64, what: Inte
     })
 }
 
-/// Spherical interpolation of codes `(1, Z)` (linear when they are parallel).
+/// Spherical interpolation of codes `(1, Z)` (linear when they are parallel); the ends are
+/// the codes themselves, exactly (the sine ratios there round off by an ulp).
 pub fn slerp(a: &Tensor, b: &Tensor, t: f64) -> Tensor {
+    if t == 0.0 || t == 1.0 {
+        return if t == 0.0 { a.copy() } else { b.copy() };
+    }
     let (na, nb) = (a.norm().double_value(&[]), b.norm().double_value(&[]));
     let cos = (a * b).sum(a.kind()).double_value(&[]) / (na * nb).max(1e-12);
     let omega = cos.clamp(-1.0, 1.0).acos();
@@ -339,7 +343,8 @@ mod tests {
         let b = Features::from_seed(&g, 8);
         let start = interpolate(&g, &f, &b, 0.0, Interpolate::Both);
         let end = interpolate(&g, &f, &b, 1.0, Interpolate::Both);
-        assert!(start.w_s.allclose(&f.w_s, 1e-5, 1e-5, false) && end.w_s.allclose(&b.w_s, 1e-5, 1e-5, false));
+        assert!(start.w_s.equal(&f.w_s) && end.w_s.equal(&b.w_s), "the ends are the sources, exactly");
+        assert!(start.appearance.gamma.equal(&f.appearance.gamma) && end.appearance.beta.equal(&b.appearance.beta));
         let half = interpolate(&g, &f, &b, 0.5, Interpolate::Appearance);
         assert!(half.w_s.equal(&f.w_s) && !half.appearance.gamma.allclose(&f.appearance.gamma, 1e-6, 1e-6, false));
         let s = slerp(&Tensor::from_slice(&[1.0f32, 0.0]), &Tensor::from_slice(&[0.0f32, 1.0]), 0.5);

@@ -1,9 +1,10 @@
 //! The server's renderer: one thread owns the generator (libtorch tensors are not shared
 //! between threads) and takes jobs from a queue in which a client's newer request
 //! supersedes its older ones still waiting, so that a drag never waits behind stale frames.
-//! It keeps what the renderer would otherwise recompute: each shape's occupancy grid (a
-//! shape change pays its build once), and the shape side of the last view asked for twice,
-//! so that an appearance change at a fixed view only re-shades.
+//! It keeps what the renderer would otherwise recompute: the occupancy grid of each shape
+//! asked for twice in a row (an orbit pays its build once; a shape slider's frames, each a
+//! new shape, render without one), and the shape side of the last view asked for twice, so
+//! that an appearance change at a fixed view only re-shades.
 use super::params::{ApiError, SourceSpec, View};
 use super::photos::Photos;
 use crate::mesh_cmd::{self, Colour};
@@ -23,6 +24,10 @@ use tch::{Kind, Tensor};
 const GRIDS_KEPT: usize = 32;
 /// Feature sets kept (seeds, files and photos, each a few KB).
 const FEATURES_KEPT: usize = 256;
+/// A kept shape side shades only its samples of more weight than this: each pixel then
+/// differs from shading them all by at most this times the samples skipped along its ray
+/// (`render::staged`), under 0.003 with 24 samples, less than one 8-bit level.
+const SHADE_MIN_WEIGHT: f64 = 1e-4;
 
 /// What a job asks the renderer for.
 pub enum Task {
@@ -110,6 +115,8 @@ pub struct Engine {
     grids: VecDeque<(String, OccupancyGrid)>,
     /// The last view's key, and the shape side of a view asked for twice in a row.
     last_view: Option<String>,
+    /// The last shape rendered: a shape asked for twice in a row gets a grid.
+    last_shape: Option<String>,
     side: Option<(String, Vec<ShapeSide>)>,
 }
 
@@ -126,6 +133,7 @@ impl Engine {
             features: VecDeque::new(),
             grids: VecDeque::new(),
             last_view: None,
+            last_shape: None,
             side: None,
         }
     }
@@ -237,8 +245,9 @@ impl Engine {
     }
 
     /// One view `(1, 3, res, res)` in [−1, 1]: re-shaded from the kept shape side when it
-    /// is this view's, else inside the shape's occupancy grid; a view asked for twice in a
-    /// row keeps its shape side, so that the appearance changes after it only re-shade.
+    /// is this view's, else inside the shape's occupancy grid, or, for a shape seen for the
+    /// first time, along the whole ray; a view asked for twice in a row keeps its shape
+    /// side, so that the appearance changes after it only re-shade.
     fn render_tensor(&mut self, v: &View) -> Result<Tensor, ApiError> {
         let shape = self.blend(&v.shape, &v.shape_blend)?;
         let appearance = self.blend(&v.appearance, &v.appearance_blend)?;
@@ -256,7 +265,7 @@ impl Engine {
         self.last_view = Some(view_key.clone());
         if self.side.as_ref().is_none_or(|(k, _)| k != &view_key) && twice {
             let rays = Rays::from_poses(&poses, res, camera.fov_deg);
-            let sides = renderer.staged().shape_sides(&lat.shape, &rays, &noise, 0.0).map_err(internal)?;
+            let sides = renderer.staged().shape_sides(&lat.shape, &rays, &noise, SHADE_MIN_WEIGHT).map_err(internal)?;
             self.side = Some((view_key.clone(), sides));
         }
         if let Some((k, sides)) = &self.side {
@@ -266,7 +275,15 @@ impl Engine {
             }
         }
         let key = v.shape_key();
-        if !self.grids.iter().any(|(k, _)| k == &key) {
+        let kept = self.grids.iter().any(|(k, _)| k == &key);
+        let again = self.last_shape.as_deref() == Some(key.as_str());
+        self.last_shape = Some(key.clone());
+        if !kept && !again {
+            // A shape seen for the first time (a shape slider's frame): one image does not
+            // pay for a grid's build; its second frame (an orbit) builds one.
+            return Ok(renderer.render_image(&lat, &poses, res, &noise).map_err(internal)?.rgb);
+        }
+        if !kept {
             // The grid of the model's own camera: points outside its cube count as occupied,
             // so it serves every field of view.
             let base = Renderer::new(g, &m.camera, &config).map_err(internal)?;

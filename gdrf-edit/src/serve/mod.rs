@@ -4,6 +4,8 @@
 //! itself (no download from anywhere); the HTTP layer is tiny_http (a small blocking
 //! server: a handful of threads is all a local viewer needs), and rendering happens on one
 //! thread that owns the generator ([`engine`]), inversion on another ([`photos`]).
+pub mod bench;
+mod client;
 mod engine;
 mod params;
 mod photos;
