@@ -203,3 +203,32 @@ fn a_port_in_use_is_an_error_that_names_it_and_other_hosts_are_warned_about() {
     let _ = child.wait();
     assert!(warned.contains("--host 0.0.0.0") && warned.contains("no authentication"), "{warned:?}");
 }
+
+/// Ctrl-C (SIGINT) stops the server at once, an inversion in flight included, and removes
+/// its uploads.
+#[test]
+fn ctrl_c_stops_the_server_and_its_inversion_in_flight() {
+    let mut s = Served::start(&["--photo-steps", "100000"]);
+    let photo = s.get("/api/render?shape=seed:11");
+    let id = s.post("/api/photo", &photo.body).json()["id"].as_u64().unwrap();
+    let started = std::time::Instant::now();
+    while s.get(&format!("/api/photo/{id}")).json()["state"] != "running" {
+        assert!(started.elapsed().as_secs() < 120, "the inversion never started");
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let pid = s.0.child.id();
+    let uploads = std::env::temp_dir().join(format!("gdrf-serve-{pid}-uploads"));
+    assert!(uploads.join(format!("{id}.png")).is_file(), "the upload is kept under its id");
+    let kill = Command::new("kill").args(["-INT", &pid.to_string()]).status().unwrap();
+    assert!(kill.success());
+    let stopping = std::time::Instant::now();
+    let status = loop {
+        if let Some(st) = s.0.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(stopping.elapsed().as_secs() < 30, "the server did not stop within 30 s of Ctrl-C");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    assert!(status.success(), "{status}");
+    assert!(!uploads.exists(), "the uploads were left in {}", uploads.display());
+}

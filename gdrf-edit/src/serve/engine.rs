@@ -15,6 +15,7 @@ use gdrf_core::render::{GridChoice, Grids, Noise, OccupancyGrid, Renderer, Shape
 use gdrf_core::{io, RenderConfig};
 use std::collections::VecDeque;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Instant;
@@ -59,11 +60,12 @@ struct Job {
     reply: mpsc::Sender<Answer>,
 }
 
-/// The jobs waiting for the renderer, oldest first.
+/// The jobs waiting for the renderer, oldest first, and whether it is rendering one.
 #[derive(Default)]
 pub struct Queue {
     jobs: Mutex<VecDeque<Job>>,
     ready: Condvar,
+    busy: AtomicBool,
 }
 
 impl Queue {
@@ -89,14 +91,22 @@ impl Queue {
         rx
     }
 
+    /// The oldest job, waiting for one; the renderer is busy from then until the next call.
     fn next(&self) -> Job {
+        self.busy.store(false, Ordering::SeqCst);
         let mut jobs = self.jobs.lock().unwrap_or_else(|p| p.into_inner());
         loop {
             if let Some(j) = jobs.pop_front() {
+                self.busy.store(true, Ordering::SeqCst);
                 return j;
             }
             jobs = self.ready.wait(jobs).unwrap_or_else(|p| p.into_inner());
         }
+    }
+
+    /// Whether the renderer is answering a job now.
+    pub fn busy(&self) -> bool {
+        self.busy.load(Ordering::SeqCst)
     }
 
     /// Jobs waiting for the renderer.

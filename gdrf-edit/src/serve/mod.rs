@@ -19,8 +19,17 @@ use photos::Photos;
 use std::io::Read;
 use std::net::IpAddr;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use tiny_http::{Header, Method, Request, Response, Server};
+
+/// Set by Ctrl-C: an inversion in flight stops at its next step.
+static STOPPING: AtomicBool = AtomicBool::new(false);
+
+/// Whether the server is stopping (Ctrl-C).
+pub(crate) fn stopping() -> bool {
+    STOPPING.load(Ordering::SeqCst)
+}
 
 const INDEX: &str = include_str!("page/index.html");
 const SCRIPT: &str = include_str!("page/app.js");
@@ -143,13 +152,19 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     std::thread::Builder::new().name("invert".into()).spawn(move || photos.run(photo_model))?;
 
     let server = Arc::new(server);
-    // Ctrl-C: stop answering, remove the uploads and leave; an inversion in flight ends
-    // with the process.
+    // Ctrl-C: stop answering, cancel an inversion in flight, let a render in flight end,
+    // remove the uploads and leave. The workers must be idle first: libtorch's own
+    // teardown at exit breaks an operation still running on another thread.
     {
-        let server = server.clone();
+        let (server, queue, photos) = (server.clone(), shared.queue.clone(), shared.photos.clone());
         ctrlc::set_handler(move || {
             eprintln!("\nstopping");
+            STOPPING.store(true, Ordering::SeqCst);
             server.unblock();
+            let start = std::time::Instant::now();
+            while (queue.busy() || photos.busy()) && start.elapsed().as_secs() < 30 {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            }
             let _ = std::fs::remove_dir_all(&dir);
             std::process::exit(0);
         })

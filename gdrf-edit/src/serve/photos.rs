@@ -8,6 +8,7 @@ use crate::model::{invert_photo, Model};
 use gdrf_core::edit::Features;
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Condvar, Mutex};
 
 /// Where one upload stands.
@@ -33,6 +34,8 @@ pub struct Photos {
     uploads: Mutex<(u64, BTreeMap<u64, Upload>)>,
     queue: Mutex<VecDeque<u64>>,
     ready: Condvar,
+    /// Whether a photo is being inverted now.
+    busy: AtomicBool,
 }
 
 impl Photos {
@@ -44,6 +47,7 @@ impl Photos {
             uploads: Mutex::new((0, BTreeMap::new())),
             queue: Mutex::new(VecDeque::new()),
             ready: Condvar::new(),
+            busy: AtomicBool::new(false),
         })
     }
 
@@ -105,6 +109,11 @@ impl Photos {
         }
     }
 
+    /// Whether a photo is being inverted now.
+    pub fn busy(&self) -> bool {
+        self.busy.load(Ordering::SeqCst)
+    }
+
     /// Ids of the photos inverted so far.
     pub fn done(&self) -> Vec<u64> {
         let uploads = self.uploads.lock().unwrap_or_else(|p| p.into_inner());
@@ -131,11 +140,17 @@ impl Photos {
                     q = self.ready.wait(q).unwrap_or_else(|p| p.into_inner());
                 }
             };
+            self.busy.store(true, Ordering::SeqCst);
             let steps = model.photo.cfg.steps;
             self.set(id, Status::Running { step: 0, steps }, None);
             let flag = format!("photo:{id}");
             let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 invert_photo(&model, &self.path(id), &flag, &mut |log| {
+                    if super::stopping() {
+                        // Unwinds out of the inversion (caught just above), without the
+                        // panic hook's message: the server is stopping.
+                        std::panic::resume_unwind(Box::new("cancelled: the server is stopping"));
+                    }
                     self.set(id, Status::Running { step: log.step + 1, steps }, None)
                 })
             }));
@@ -144,6 +159,7 @@ impl Photos {
                 Ok(Err(e)) => self.set(id, Status::Failed { error: format!("{e:#}") }, None),
                 Err(p) => self.set(id, Status::Failed { error: super::panic_text(&p) }, None),
             }
+            self.busy.store(false, Ordering::SeqCst);
         }
     }
 }

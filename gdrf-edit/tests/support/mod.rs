@@ -37,3 +37,16 @@ impl Served {
         request(self.port(), "POST", path, &self.host(), body)
     }
 }
+
+impl std::ops::DerefMut for Served {
+    fn deref_mut(&mut self) -> &mut client::Served {
+        &mut self.0
+    }
+}
+
+impl std::ops::Deref for Served {
+    type Target = client::Served;
+    fn deref(&self) -> &client::Served {
+        &self.0
+    }
+}
