@@ -105,7 +105,8 @@ impl Photos {
             (None, Status::Failed { error }) => {
                 Err(ApiError { status: 422, message: format!("photo:{id}: its inversion failed: {error}") })
             }
-            (None, _) => Err(ApiError { status: 409, message: format!("photo:{id}: still being inverted") }),
+            // 425 Too Early, not 409: the page takes a 409 for its own superseded request.
+            (None, _) => Err(ApiError { status: 425, message: format!("photo:{id}: still being inverted") }),
         }
     }
 
@@ -189,7 +190,7 @@ mod tests {
         let img = image::RgbImage::from_pixel(4, 4, image::Rgb([200, 10, 10]));
         let id = photos.upload(&gdrf_core::io::png_bytes(&img).unwrap()).unwrap();
         assert_eq!(photos.status(id).unwrap(), Status::Queued);
-        assert_eq!(photos.features(id).unwrap_err().status, 409);
+        assert_eq!(photos.features(id).unwrap_err().status, 425);
         assert_eq!(photos.status(id + 1).unwrap_err().status, 404);
         assert!(photos.done().is_empty());
         // Kept under its id alone, decoded and re-encoded as PNG.
