@@ -123,24 +123,29 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let mut cases = Vec::new();
     let n = a.frames;
     let resolutions = if a.load_only { &[][..] } else { &a.resolutions[..] };
-    for &res in resolutions {
+    for (i, &res) in resolutions.iter().enumerate() {
         let q = |rest: String| format!("/api/render?res={res}&samples={samples}&{rest}");
+        // Seeds of their own at each resolution: a grid (resolution-free) or a cached
+        // feature set of an earlier resolution would skip the work a user's first frames do.
+        let seed = |k: usize| 20 + 10 * i + k;
         // Orbiting: the first frame renders along the whole ray, the second builds the
         // shape's grid.
-        let orbit: Vec<String> = (0..n + 2).map(|k| q(format!("shape=seed:20&yaw={}", 15 * k))).collect();
+        let orbit: Vec<String> = (0..n + 2).map(|k| q(format!("shape=seed:{}&yaw={}", seed(0), 15 * k))).collect();
         // The appearance slider at a fixed view: the second frame keeps the shape side.
         let slide = |key: &str, b: &str, k: usize| format!("{key}_b={b}&{key}_t={:.4}", k as f64 / (n - 1) as f64);
         let appearance: Vec<String> = (0..n + 2)
             .map(|k| {
                 q(format!(
-                    "shape=seed:21&appearance=seed:21&{}&yaw=30",
-                    slide("appearance", "seed:22", k.saturating_sub(2))
+                    "shape=seed:{s}&appearance=seed:{s}&{}&yaw=30",
+                    slide("appearance", &format!("seed:{}", seed(2)), k.saturating_sub(2)),
+                    s = seed(1)
                 ))
             })
             .collect();
         // The shape slider: every frame a new shape, its grid built.
-        let shape: Vec<String> =
-            (0..n).map(|k| q(format!("shape=seed:23&{}&yaw=30", slide("shape", "seed:24", k)))).collect();
+        let shape: Vec<String> = (0..n)
+            .map(|k| q(format!("shape=seed:{}&{}&yaw=30", seed(3), slide("shape", &format!("seed:{}", seed(4)), k))))
+            .collect();
         for (case, paths, warm) in
             [("orbit", orbit, 2), ("appearance slider", appearance, 2), ("shape slider", shape, 0)]
         {
