@@ -20,11 +20,12 @@ use serde::Serialize;
 use std::path::PathBuf;
 use tch::{Device, Kind, Tensor};
 
-/// The flags of `gdrf-bench shared-grid`.
-#[derive(clap::Args, Debug, Clone)]
+/// The flags of `gdrf-bench shared-grid` (the JSON records the settings, not the paths).
+#[derive(clap::Args, Debug, Clone, Serialize)]
 pub struct Options {
     /// Generator checkpoint; default: the shipped model.
     #[arg(long, visible_alias = "generator", value_name = "FILE")]
+    #[serde(skip)]
     pub checkpoint: Option<PathBuf>,
     /// Codes in the largest union (z = randn after manual_seed of seeds 0, 1, …, as
     /// `gdrf-edit render`); the unions of the first 1, 2, 4, … of them are measured.
@@ -44,6 +45,7 @@ pub struct Options {
     pub resolution: i64,
     /// Output stem: writes STEM.json and STEM.png.
     #[arg(long, default_value = "shared-grid")]
+    #[serde(skip)]
     pub out: PathBuf,
 }
 
@@ -74,19 +76,6 @@ struct Doc<'a> {
     /// One code's own grid, averaged over the codes (the per-instance grid).
     own_grid: Vec<Row>,
     unions: Vec<Row>,
-}
-
-impl Serialize for Options {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        use serde::ser::SerializeStruct;
-        let mut st = s.serialize_struct("Options", 5)?;
-        st.serialize_field("codes", &self.codes)?;
-        st.serialize_field("grid", &self.grid)?;
-        st.serialize_field("thresholds", &self.thresholds)?;
-        st.serialize_field("views", &self.views)?;
-        st.serialize_field("resolution", &self.resolution)?;
-        st.end()
-    }
 }
 
 /// What `occupied` (a `(G, G, G)` grid over the camera's cube) keeps of `rays`.

@@ -90,6 +90,11 @@ impl Features {
 
     /// Writes the features atomically, tied to generator identity `generator_id`.
     pub fn save(&self, path: &Path, generator_id: &str) -> Result<()> {
+        write_atomic(path, &self.to_bytes(generator_id)?)
+    }
+
+    /// The feature file's bytes ([`Self::save`] writes them).
+    pub fn to_bytes(&self, generator_id: &str) -> Result<Vec<u8>> {
         let header = FeaturesHeader { format_version: 1, generator: generator_id.to_string(), pose: self.pose };
         let tensors = vec![
             ("w_s".to_string(), self.w_s.shallow_clone()),
@@ -97,7 +102,20 @@ impl Features {
             ("beta_a".to_string(), self.appearance.beta.shallow_clone()),
         ];
         let json = serde_json::to_string(&header).map_err(|e| Error::Invalid(e.to_string()))?;
-        write_atomic(path, &tensors_to_bytes(&tensors, FEATURES_KEY, &json)?)
+        tensors_to_bytes(&tensors, FEATURES_KEY, &json)
+    }
+
+    /// The same features, their tensors shared (a cache hands them out without copying).
+    pub fn shallow_clone(&self) -> Self {
+        Self {
+            w_s: self.w_s.shallow_clone(),
+            appearance: Film {
+                gamma: self.appearance.gamma.shallow_clone(),
+                beta: self.appearance.beta.shallow_clone(),
+            },
+            pose: self.pose,
+            z: self.z.as_ref().map(Tensor::shallow_clone),
+        }
     }
 
     /// Reads a feature file made for generator `g` (identity `generator_id`): another
@@ -182,8 +200,11 @@ pub fn interpolate(g: &Generator, a: &Features, b: &Features, t: f64, what: Inte
 /// Spherical interpolation of codes `(1, Z)` (linear when they are parallel); the ends are
 /// the codes themselves, exactly (the sine ratios there round off by an ulp).
 pub fn slerp(a: &Tensor, b: &Tensor, t: f64) -> Tensor {
-    if t == 0.0 || t == 1.0 {
-        return if t == 0.0 { a.copy() } else { b.copy() };
+    if t == 0.0 {
+        return a.copy();
+    }
+    if t == 1.0 {
+        return b.copy();
     }
     let (na, nb) = (a.norm().double_value(&[]), b.norm().double_value(&[]));
     let cos = (a * b).sum(a.kind()).double_value(&[]) / (na * nb).max(1e-12);

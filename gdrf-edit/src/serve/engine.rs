@@ -11,7 +11,7 @@ use crate::mesh_cmd::{self, Colour};
 use crate::model::Model;
 use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::edit::{interpolate, latents, Features, Interpolate};
-use gdrf_core::render::{GridChoice, Grids, Noise, OccupancyGrid, Renderer, ShapeSide};
+use gdrf_core::render::{GridConfig, Grids, Noise, OccupancyGrid, Renderer, ShapeSide};
 use gdrf_core::{io, RenderConfig};
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -186,12 +186,7 @@ impl Engine {
                 Ok(Reply { bytes: mesh.to_ply().into_bytes(), content_type: "application/x-ply", millis: 0.0 })
             }
             Task::Features(s) => {
-                let f = self.features_of(s)?;
-                let dir = tempfile_dir().map_err(internal)?;
-                let path = dir.join("features.safetensors");
-                f.save(&path, &self.model.id).map_err(internal)?;
-                let bytes = std::fs::read(&path).map_err(internal)?;
-                let _ = std::fs::remove_dir_all(&dir);
+                let bytes = self.features_of(s)?.to_bytes(&self.model.id).map_err(internal)?;
                 Ok(Reply { bytes, content_type: "application/octet-stream", millis: 0.0 })
             }
             Task::Matrix(v, sources) => {
@@ -218,7 +213,7 @@ impl Engine {
     /// The features of one source, from the cache or resolved now.
     fn features_of(&mut self, s: &SourceSpec) -> Result<Features, ApiError> {
         if let Some((_, f)) = self.features.iter().find(|(k, _)| k == s) {
-            return Ok(copy(f));
+            return Ok(f.shallow_clone());
         }
         let g = &self.model.generator;
         let f = match s {
@@ -233,7 +228,7 @@ impl Engine {
         if self.features.len() >= FEATURES_KEPT {
             self.features.pop_front();
         }
-        self.features.push_back((s.clone(), copy(&f)));
+        self.features.push_back((s.clone(), f.shallow_clone()));
         Ok(f)
     }
 
@@ -297,9 +292,8 @@ impl Engine {
             // The grid of the model's own camera: points outside its cube count as occupied,
             // so it serves every field of view.
             let base = Renderer::new(g, &m.camera, &config).map_err(internal)?;
-            let cfg = GridChoice::Cells(64).resolve(0.0, gdrf_core::render::GridConfig::default().threshold, true);
-            let grid =
-                Grids::new(&base).occupancy_grid(&lat.shape, cfg.expect("an explicit size")).map_err(internal)?;
+            let cfg = GridConfig { resolution: 64, cells_only: true, ..GridConfig::default() };
+            let grid = Grids::new(&base).occupancy_grid(&lat.shape, cfg).map_err(internal)?;
             if self.grids.len() >= GRIDS_KEPT {
                 self.grids.pop_front();
             }
@@ -310,32 +304,6 @@ impl Engine {
             Grids::new(&renderer).render_image_in_grids(&lat, &poses, res, &noise, &[grid]).map_err(internal)?;
         Ok(img.rgb)
     }
-}
-
-/// A copy of a feature set (tensors shared: nothing here writes into them).
-fn copy(f: &Features) -> Features {
-    Features {
-        w_s: f.w_s.shallow_clone(),
-        appearance: gdrf_core::Film {
-            gamma: f.appearance.gamma.shallow_clone(),
-            beta: f.appearance.beta.shallow_clone(),
-        },
-        pose: f.pose,
-        z: f.z.as_ref().map(Tensor::shallow_clone),
-    }
-}
-
-/// A fresh private folder for one export's file.
-fn tempfile_dir() -> std::io::Result<PathBuf> {
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let dir = std::env::temp_dir().join(format!(
-        "gdrf-serve-{}-{}",
-        std::process::id(),
-        NEXT.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::create_dir_all(&dir)?;
-    Ok(dir)
 }
 
 #[cfg(test)]

@@ -93,15 +93,7 @@ impl Photos {
         let uploads = self.uploads.lock().unwrap_or_else(|p| p.into_inner());
         let u = uploads.1.get(&id).ok_or_else(|| unknown(id))?;
         match (&u.features, &u.status) {
-            (Some(f), _) => Ok(Features {
-                w_s: f.w_s.shallow_clone(),
-                appearance: gdrf_core::Film {
-                    gamma: f.appearance.gamma.shallow_clone(),
-                    beta: f.appearance.beta.shallow_clone(),
-                },
-                pose: f.pose,
-                z: None,
-            }),
+            (Some(f), _) => Ok(f.shallow_clone()),
             (None, Status::Failed { error }) => {
                 Err(ApiError { status: 422, message: format!("photo:{id}: its inversion failed: {error}") })
             }
