@@ -3,7 +3,7 @@
 # configs/chairs-campaign.toml in the background, resumed every session.
 #
 #   scripts/campaign.sh resume   [RUN_DIR]   continue it in the background at low priority, with
-#                                            configs/chairs-campaign-cpu-patch.toml (a fresh clone
+#                                            configs/chairs-campaign-cpu.toml (a fresh clone
 #                                            first copies models/chairs-campaign/run)
 #   scripts/campaign.sh stop     [RUN_DIR]   stop it with a checkpoint (SIGINT), and wait
 #   scripts/campaign.sh status   [RUN_DIR]   step, last log line, the curve's last evaluation
@@ -27,9 +27,7 @@ model=models/chairs-campaign
 shipped=$model/run
 bin="$(dirname "$run")/bin/gdrf-train"
 log="$(dirname "$run")/train.log"
-# Since step 207 761 the campaign's 64² stage runs on the scaled-patch step (docs/campaign-log.md,
-# "The scaled-patch step": the comparison's rule chose it at an equal CPU budget).
-cpu_config=configs/chairs-campaign-cpu-patch.toml
+cpu_config=configs/chairs-campaign-cpu.toml
 
 die() { printf 'campaign: error: %s\n' "$*" >&2; exit 1; }
 running() { pgrep -f -- "gdrf-train --resume $run( |\$)" || true; }

@@ -57,7 +57,9 @@ enum Command {
     /// structure, yaw, pitch) is highest, ties to the later step (docs/training.md, "The
     /// campaign"). Writes DIR/generator.safetensors and DIR/seeds.json, that evaluation's
     /// scores; where its evaluation folder lost them, from the run's checkpoint of that step
-    /// and the curve.
+    /// and the curve. A generator DIR already holds is replaced only when that evaluation
+    /// ranks above it by the same rule, scored the same way: its DIR/seeds.json, or
+    /// DIR/seeds-R.json where it was shipped at another resolution than the curve's R.
     Ship(ShipArgs),
     /// Copy a run's full training state into one folder that `--resume` continues from: its
     /// newest checkpoint (both networks, the EMA, both optimisers, the counters), config.toml,
@@ -282,7 +284,15 @@ fn parse_group_weight(s: &str) -> std::result::Result<(String, f64), String> {
 fn ship_cmd(a: ShipArgs) -> Result<()> {
     let shipped = gdrf_core::train::curve::ship(&a.run_dir, &a.out)?;
     let p = &shipped.point;
-    let whither = if shipped.unchanged {
+    let whither = if let Some(k) = &shipped.kept {
+        format!(
+            ": {} keeps its own generator, unchanged: it {} the goal, lowest position {:.3} ({}), at or above this step's",
+            a.out.display(),
+            if k.meets_goal { "meets" } else { "is short of" },
+            k.lowest,
+            k.score
+        )
+    } else if shipped.unchanged {
         format!(": already in {}, unchanged (its seeds.json holds this step's scores)", a.out.display())
     } else {
         format!(" -> {} (from {})", a.out.join("generator.safetensors").display(), shipped.from.display())

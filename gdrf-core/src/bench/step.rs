@@ -39,8 +39,8 @@ pub struct Options {
     #[arg(long)]
     pub resolution: Option<i64>,
     /// The scaled-patch step with P×P patches of the R×R images (`[stages.patch] size`;
-    /// default: the stage's, whole images where it has none). The PyTorch reference has no
-    /// such step and is then skipped.
+    /// default: the stage's, whole images where it has none); 0: whole images even where the
+    /// stage has patches. The PyTorch reference has no such step and is then skipped.
     #[arg(long, value_name = "P")]
     pub patch: Option<i64>,
     /// Timed steps per implementation (the median is reported).
@@ -367,9 +367,11 @@ fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
     if let Some(r) = a.resolution {
         st.resolution = r;
     }
-    if let Some(p) = a.patch {
+    match a.patch {
+        Some(0) => st.patch = None,
         // The end of the annealing: a step costs the same at any scale.
-        st.patch = Some(PatchConfig { size: p, anneal_images: 0, ..PatchConfig::default() });
+        Some(p) => st.patch = Some(PatchConfig { size: p, anneal_images: 0, ..PatchConfig::default() }),
+        None => {}
     }
     if st.patch.is_some() {
         notes.push("the scaled-patch step: the PyTorch reference has none, and is not run".into());
@@ -534,4 +536,34 @@ fn reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result<Vec<
     }
     // --key=value, so that negative numbers are not taken for options.
     Ok(a.into_iter().map(|(k, v)| if v.is_empty() { format!("--{k}") } else { format!("--{k}={v}") }).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        options: Options,
+    }
+
+    /// The patch side of the one stage `gdrf-bench step` runs with `args` on the campaign's
+    /// CPU config, whose 64² stage (index 2) has 32² patches.
+    fn patch_of(args: &[&str]) -> Option<i64> {
+        let config = crate::paths::repo_root().join("configs/chairs-campaign-cpu.toml");
+        let mut argv = vec!["gdrf-bench", "--config", config.to_str().unwrap(), "--stage", "2"];
+        argv.extend_from_slice(args);
+        let a = Cli::try_parse_from(argv).unwrap().options;
+        let (cfg, _) = step_config(&a, Path::new("unused")).unwrap();
+        cfg.stages[0].patch.as_ref().map(|p| p.size)
+    }
+
+    #[test]
+    fn patch_flag_keeps_replaces_or_drops_the_stages_patches() {
+        assert_eq!(patch_of(&[]), Some(32));
+        assert_eq!(patch_of(&["--patch", "16"]), Some(16));
+        assert_eq!(patch_of(&["--patch", "0"]), None);
+    }
 }

@@ -23,7 +23,8 @@ pub struct SeedSpread {
     pub position: Vec<f64>,
     /// How many seeds gave all three values finite (a random generator whose swaps vary in
     /// no structure factor gives the structure test no value); the means and standard
-    /// deviations are over those seeds.
+    /// deviations are over those seeds. Where no seed did, the model's and the real end's
+    /// means are over the seeds that gave each, and the random end and position are NaN.
     pub counted: usize,
     /// The means, and where the model's mean stands between the ends' means.
     pub mean: Calibrated,
@@ -70,26 +71,7 @@ pub fn summarise(results: &[EvalResult]) -> Result<SeedSummary> {
     let scores = (0..rows[0].len())
         .map(|i| {
             let pick = |f: fn(&Calibrated) -> f64| rows.iter().map(|r| f(r[i].1)).collect::<Vec<f64>>();
-            let (model, real, random, position) =
-                (pick(|c| c.model), pick(|c| c.real), pick(|c| c.random), pick(|c| c.position));
-            let worst_position = position.iter().copied().filter(|p| !p.is_nan()).fold(f64::NAN, f64::min);
-            let finite: Vec<usize> = (0..model.len())
-                .filter(|&k| model[k].is_finite() && real[k].is_finite() && random[k].is_finite())
-                .collect();
-            let keep = |v: &[f64]| finite.iter().map(|&k| v[k]).collect::<Vec<f64>>();
-            let (m, r, x) = (keep(&model), keep(&real), keep(&random));
-            SeedSpread {
-                score: rows[0][i].0.trim().to_string(),
-                counted: finite.len(),
-                mean: Calibrated::new(mean(&m), mean(&r), mean(&x)),
-                model_sd: sd(&m),
-                random_sd: sd(&x),
-                worst_position,
-                model,
-                real,
-                random,
-                position,
-            }
+            spread(rows[0][i].0.trim(), pick(|c| c.model), pick(|c| c.real), pick(|c| c.random), pick(|c| c.position))
         })
         .collect();
     Ok(SeedSummary {
@@ -103,6 +85,35 @@ pub fn summarise(results: &[EvalResult]) -> Result<SeedSummary> {
         scores,
         seconds: results.iter().map(|r| r.seconds).sum(),
     })
+}
+
+/// One score's per-seed values gathered into a [`SeedSpread`].
+fn spread(score: &str, model: Vec<f64>, real: Vec<f64>, random: Vec<f64>, position: Vec<f64>) -> SeedSpread {
+    let worst_position = position.iter().copied().filter(|p| !p.is_nan()).fold(f64::NAN, f64::min);
+    let finite =
+        |v: &[&[f64]]| -> Vec<usize> { (0..model.len()).filter(|&k| v.iter().all(|s| s[k].is_finite())).collect() };
+    let counted = finite(&[&model, &real, &random]);
+    let keep = |v: &[f64], at: &[usize]| at.iter().map(|&k| v[k]).collect::<Vec<f64>>();
+    let (m, r, x) = if counted.is_empty() {
+        // No seed has a random end (the structure test often has none): the model's rate
+        // and the real one are still worth their mean, without a position.
+        (keep(&model, &finite(&[&model])), keep(&real, &finite(&[&real])), vec![])
+    } else {
+        (keep(&model, &counted), keep(&real, &counted), keep(&random, &counted))
+    };
+    let random_mean = if x.is_empty() { f64::NAN } else { mean(&x) };
+    SeedSpread {
+        score: score.to_string(),
+        counted: counted.len(),
+        mean: Calibrated::new(mean(&m), mean(&r), random_mean),
+        model_sd: sd(&m),
+        random_sd: sd(&x),
+        worst_position,
+        model,
+        real,
+        random,
+        position,
+    }
 }
 
 /// The spread as text: per score, the model's and the random end's mean ± sd, the real
@@ -125,8 +136,11 @@ pub fn summary(s: &SeedSummary) -> String {
     );
     for c in &s.scores {
         let pos: String = c.position.iter().map(|p| format!(" {p:>7.2}")).collect();
-        let name =
-            if c.counted < s.seeds.len() { format!("{} ({} seeds)", c.score, c.counted) } else { c.score.clone() };
+        let name = match c.counted {
+            0 => format!("{} (no random end)", c.score),
+            n if n < s.seeds.len() => format!("{} ({n} seeds)", c.score),
+            _ => c.score.clone(),
+        };
         t += &format!(
             "{:<26} {:>17} {:>9.4} {:>17}{pos} {:>8.2} {:>8.2}\n",
             name,
@@ -159,5 +173,21 @@ mod tests {
         // Deviations −2, −1, 3: squares sum to 14, over n − 1 = 2 gives 7.
         assert_eq!(sd(&[1.0, 2.0, 6.0]), 7f64.sqrt());
         assert_eq!(sd(&[5.0]), 0.0);
+    }
+
+    #[test]
+    fn means_over_the_seeds_that_have_every_end() {
+        let n = f64::NAN;
+        // Seed 1 has no random end: the means are seed 0's and seed 2's.
+        let s = spread("x", vec![0.5, 0.9, 0.75], vec![1.0, 1.0, 1.0], vec![0.0, n, 0.5], vec![0.5, n, 0.5]);
+        assert_eq!(s.counted, 2);
+        assert_eq!((s.mean.model, s.mean.real, s.mean.random, s.mean.position), (0.625, 1.0, 0.25, 0.5));
+        assert_eq!((s.model_sd, s.random_sd), (0.03125f64.sqrt(), 0.125f64.sqrt()));
+        // No seed has one: the model's and the real end's means stay, without a position.
+        let s = spread("x", vec![0.75, 0.875], vec![1.0, 0.5], vec![n, n], vec![n, n]);
+        assert_eq!(s.counted, 0);
+        assert_eq!((s.mean.model, s.mean.real), (0.8125, 0.75));
+        assert_eq!((s.model_sd, s.random_sd), (0.0078125f64.sqrt(), 0.0));
+        assert!(s.mean.random.is_nan() && s.mean.position.is_nan() && s.worst_position.is_nan());
     }
 }

@@ -139,23 +139,34 @@ pub struct RulePoint {
 /// first evaluation): a model is shipped for the images it draws at its newest size, and
 /// scores at another size are not comparable. `None` for a curve without a counted score.
 pub fn best(lines: &[serde_json::Value]) -> Option<RulePoint> {
-    let resolution = |l: &serde_json::Value| l["scores"]["resolution"].as_i64();
     let highest = lines.iter().filter_map(resolution).max();
     lines
         .iter()
         .filter(|l| resolution(l) == highest)
-        .filter_map(|l| {
-            let step = l["step"].as_i64()?;
-            let (score, lowest) = l["scores"]["scores"]
-                .as_array()?
-                .iter()
-                .filter(|s| s["score"].as_str().is_some_and(|n| RULE_SCORES.contains(&n)))
-                .filter_map(|s| Some((s["score"].as_str()?.to_string(), s["mean"]["position"].as_f64()?)))
-                .filter(|(_, p)| p.is_finite())
-                .min_by(|a, b| a.1.total_cmp(&b.1))?;
-            Some(RulePoint { step, meets_goal: meets_goal(l), lowest, score })
-        })
-        .max_by(|a, b| a.meets_goal.cmp(&b.meets_goal).then(a.lowest.total_cmp(&b.lowest)).then(a.step.cmp(&b.step)))
+        .filter_map(|l| rule_point(l, l["step"].as_i64()?))
+        .max_by(|a, b| rule_order(a, b).then(a.step.cmp(&b.step)))
+}
+
+/// The resolution a curve line (or a model folder's scores, wrapped as one) was scored at.
+fn resolution(line: &serde_json::Value) -> Option<i64> {
+    line["scores"]["resolution"].as_i64()
+}
+
+/// `line` as the rule sees it, as step `step`; `None` without a counted position.
+fn rule_point(line: &serde_json::Value, step: i64) -> Option<RulePoint> {
+    let (score, lowest) = line["scores"]["scores"]
+        .as_array()?
+        .iter()
+        .filter(|s| s["score"].as_str().is_some_and(|n| RULE_SCORES.contains(&n)))
+        .filter_map(|s| Some((s["score"].as_str()?.to_string(), s["mean"]["position"].as_f64()?)))
+        .filter(|(_, p)| p.is_finite())
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    Some(RulePoint { step, meets_goal: meets_goal(line), lowest, score })
+}
+
+/// The rule's order without the steps: the goal met first, then the higher lowest position.
+fn rule_order(a: &RulePoint, b: &RulePoint) -> std::cmp::Ordering {
+    a.meets_goal.cmp(&b.meets_goal).then(a.lowest.total_cmp(&b.lowest))
 }
 
 /// What [`ship`] copied.
@@ -165,10 +176,72 @@ pub struct Shipped {
     /// Evaluations on the curve.
     pub evaluations: usize,
     /// Where the generator came from: its evaluation folder's copy, the run's checkpoint of
-    /// that step, or `out` itself when it already held that step's export.
+    /// that step, or `out` itself when it already held that step's export or kept its own.
     pub from: PathBuf,
     /// Whether `out` already held that step's export and nothing was written.
     pub unchanged: bool,
+    /// Where `out` holds another generator that ranks at or above the curve's best by the
+    /// same rule, scored the same way ([`held_scores`]): that generator's standing (its
+    /// step −1), and nothing was written.
+    pub kept: Option<RulePoint>,
+}
+
+/// A model folder's scores at resolution R besides its own `seeds.json`, named
+/// `seeds-R.json` (`seeds-64.json`): those of its generator scored at another resolution than
+/// the one it was shipped at, which an evaluation at R must beat to replace it.
+pub fn held_scores_name(resolution: i64) -> String {
+    format!("seeds-{resolution}.json")
+}
+
+/// The scores at `line`'s resolution of the generator `out` holds, for the rule to compare
+/// with `line`: `out/seeds.json` where it was scored at that resolution, else
+/// `out/seeds-R.json`; `None` where `out` holds no generator. An error where it holds one
+/// without scores at R, or where they were not scored as `line` was (seeds, images,
+/// samples), naming the file.
+pub fn held_scores(out: &Path, line: &Value) -> Result<Option<Value>> {
+    if !out.join(run::GENERATOR).is_file() {
+        return Ok(None);
+    }
+    let r = resolution(line).unwrap_or(0);
+    let read = |path: &Path| -> Result<Value> {
+        let text = std::fs::read_to_string(path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
+        serde_json::from_str(&text).map_err(|e| Error::Invalid(format!("{}: not a scores file: {e}", path.display())))
+    };
+    let own = out.join(SEEDS);
+    let at_r = out.join(held_scores_name(r));
+    let (path, held) = match own.is_file().then(|| read(&own)).transpose()? {
+        Some(s) if s["resolution"].as_i64() == Some(r) => (own, s),
+        _ if at_r.is_file() => {
+            let s = read(&at_r)?;
+            (at_r, s)
+        }
+        _ => {
+            return Err(Error::Invalid(format!(
+                "{} holds a generator without scores at {r}², the resolution the curve ranks: score it as the \
+                 curve does (gdrf-train eval --generator {} --resolution {r} with the run's [eval] num, samples, \
+                 swap and seeds) and copy that seeds.json to {}, or ship into another folder",
+                out.display(),
+                out.join(run::GENERATOR).display(),
+                at_r.display()
+            )))
+        }
+    };
+    for key in ["resolution", "seeds", "images", "samples_per_ray", "psi"] {
+        if held[key] != line["scores"][key] {
+            return Err(Error::Invalid(format!(
+                "{}: scored with {key} {}, the curve's evaluation with {}: the rule compares scores taken the same way",
+                path.display(),
+                held[key],
+                line["scores"][key]
+            )));
+        }
+    }
+    Ok(Some(held))
+}
+
+/// `scores` as a curve line without a step, so the rule can read it.
+fn json_line(scores: Value) -> Value {
+    serde_json::json!({ "scores": scores })
 }
 
 /// Writes the generator [`best`] ranks first into `out` (created when missing) as
@@ -178,7 +251,10 @@ pub struct Shipped {
 /// the EMA generator of the run's checkpoint of that step, the file its run exported then,
 /// and the scores are the curve's. Where the run keeps neither (its checkpoint of that step
 /// was overwritten too) but `out` already holds a generator beside seeds.json equal to that
-/// step's curve scores, that step is shipped already and nothing is written.
+/// step's curve scores, that step is shipped already and nothing is written. Where `out`
+/// holds another generator, its scores at the curve's resolution ([`held_scores`]) must rank
+/// below that step's by the same rule, or it is kept and nothing is written; once replaced,
+/// its scores at other resolutions (`seeds-R.json`) are removed.
 pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
     let lines = read(run_dir)?;
     let point = best(&lines).ok_or_else(|| {
@@ -188,6 +264,19 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
         ))
     })?;
     let line = lines.iter().find(|l| l["step"].as_i64() == Some(point.step)).expect("best is one of the lines");
+    let evaluations = lines.len();
+    let held_generator = out.join(run::GENERATOR);
+    if !holds_scores(&out.join(SEEDS), &line["scores"]) {
+        // The model folder's own generator stays unless the curve's best beats it (its
+        // standing as the rule reads it; one without a counted position is beaten).
+        if let Some(held) = held_scores(out, line)? {
+            if let Some(kept) = rule_point(&json_line(held), -1) {
+                if rule_order(&kept, &point).is_ge() {
+                    return Ok(Shipped { point, evaluations, from: held_generator, unchanged: true, kept: Some(kept) });
+                }
+            }
+        }
+    }
     let dir = eval_dir(run_dir, point.step);
     let copy = |name: &str| -> Result<Option<()>> {
         let from = dir.join(name);
@@ -201,9 +290,8 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
     let generator = dir.join(run::GENERATOR);
     let checkpoint = run_dir.join(run::CHECKPOINTS).join(run::checkpoint_name(point.step));
     if !generator.is_file() && !checkpoint.is_file() {
-        let held = out.join(run::GENERATOR);
-        if held.is_file() && holds_scores(&out.join(SEEDS), &line["scores"]) {
-            return Ok(Shipped { point, evaluations: lines.len(), from: held, unchanged: true });
+        if held_generator.is_file() && holds_scores(&out.join(SEEDS), &line["scores"]) {
+            return Ok(Shipped { point, evaluations, from: held_generator, unchanged: true, kept: None });
         }
         return Err(Error::Invalid(format!(
             "the curve ranks step {} first, but neither {} nor {} is there to ship it from, \
@@ -224,7 +312,16 @@ pub fn ship(run_dir: &Path, out: &Path) -> Result<Shipped> {
     if copy(SEEDS)?.is_none() {
         crate::paths::write_atomic(&out.join(SEEDS), serde_json::to_string_pretty(&line["scores"])?.as_bytes())?;
     }
-    Ok(Shipped { point, evaluations: lines.len(), from, unchanged: false })
+    // Scores of the replaced generator at other resolutions no longer describe the folder.
+    let entries = std::fs::read_dir(out).map_err(|err| Error::Io { path: out.to_path_buf(), err })?;
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let other = name.strip_prefix("seeds-").and_then(|n| n.strip_suffix(".json"));
+        if other.is_some_and(|r| r.parse::<i64>().is_ok()) {
+            std::fs::remove_file(e.path()).map_err(|err| Error::Io { path: e.path(), err })?;
+        }
+    }
+    Ok(Shipped { point, evaluations, from, unchanged: false, kept: None })
 }
 
 /// Whether the JSON file at `path` equals `scores`; false where it is missing or unreadable,
@@ -649,6 +746,60 @@ mod tests {
             RulePoint { step: 210000, meets_goal: false, lowest: (0.6 + 0.7) / 2.0, score: "frechet distance".into() }
         );
         assert_eq!(best(&lines[..1]).unwrap().step, 95000);
+    }
+
+    /// `scored`'s line with the settings an evaluation records, at `resolution`.
+    fn taken(resolution: i64, mut l: serde_json::Value) -> serde_json::Value {
+        let s = &mut l["scores"];
+        (s["resolution"], s["seeds"], s["images"], s["samples_per_ray"], s["psi"]) =
+            (json!(resolution), json!([0, 1]), json!(500), json!(24), json!(1.0));
+        l
+    }
+
+    #[test]
+    fn a_shipped_generator_is_replaced_only_by_a_better_evaluation_at_the_curves_resolution() {
+        let tmp = crate::paths::TempDir::new("ship-guard").unwrap();
+        let (run_dir, out) = (tmp.path("run"), tmp.path("model"));
+        let write = |path: &Path, text: &str| {
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            std::fs::write(path, text).unwrap();
+        };
+        // The curve: step 210 000 at 64², lowest position 0.6 (its Fréchet).
+        let at_64 = taken(64, scored(210000, [Some(0.6), Some(0.6)], [30.0, 30.0], [0.8, 0.8], [0.8, 0.8]));
+        write(&run_dir.join(CURVE), &format!("{at_64}\n"));
+        let evaluated = eval_dir(&run_dir, 210000);
+        write(&evaluated.join(run::GENERATOR), "the 64² generator");
+        write(&evaluated.join(SEEDS), &at_64["scores"].to_string());
+        // The folder ships a generator scored at 32² only: refused, naming the missing file.
+        let at_32 = taken(32, scored(95000, [Some(0.9), Some(0.9)], [25.0, 25.0], [0.9, 0.9], [0.9, 0.9]));
+        write(&out.join(run::GENERATOR), "the 32² generator");
+        write(&out.join(SEEDS), &at_32["scores"].to_string());
+        let err = ship(&run_dir, &out).unwrap_err().to_string();
+        assert!(err.contains(&out.join("seeds-64.json").display().to_string()), "{err}");
+        // Its 64² scores taken another way are refused, naming the file and the setting.
+        let mut other_seeds = taken(64, scored(95000, [Some(0.5), Some(0.5)], [30.0, 30.0], [0.8, 0.8], [0.8, 0.8]));
+        other_seeds["scores"]["seeds"] = json!([2, 3]);
+        write(&out.join("seeds-64.json"), &other_seeds["scores"].to_string());
+        let err = ship(&run_dir, &out).unwrap_err().to_string();
+        assert!(err.contains("seeds-64.json") && err.contains("seeds [2,3]"), "{err}");
+        // Scored the same way and ranking at or above the curve's best: kept, nothing written.
+        for lowest in [0.6, 0.65] {
+            let held = taken(64, scored(95000, [Some(lowest), Some(lowest)], [30.0, 30.0], [0.8, 0.8], [0.8, 0.8]));
+            write(&out.join("seeds-64.json"), &held["scores"].to_string());
+            let s = ship(&run_dir, &out).unwrap();
+            assert!(s.unchanged && s.kept.as_ref().is_some_and(|k| k.lowest == lowest), "{s:?}");
+            assert_eq!(std::fs::read_to_string(out.join(run::GENERATOR)).unwrap(), "the 32² generator");
+        }
+        // Ranking below it: replaced, and the replaced generator's 64² scores removed.
+        let held = taken(64, scored(95000, [Some(0.55), Some(0.55)], [30.0, 30.0], [0.8, 0.8], [0.8, 0.8]));
+        write(&out.join("seeds-64.json"), &held["scores"].to_string());
+        let s = ship(&run_dir, &out).unwrap();
+        assert!(!s.unchanged && s.kept.is_none() && s.point.step == 210000, "{s:?}");
+        assert_eq!(std::fs::read_to_string(out.join(run::GENERATOR)).unwrap(), "the 64² generator");
+        assert_eq!(std::fs::read_to_string(out.join(SEEDS)).unwrap(), at_64["scores"].to_string());
+        assert!(!out.join("seeds-64.json").exists());
+        // Shipped: the same step again leaves it as it is.
+        assert!(ship(&run_dir, &out).unwrap().kept.is_none());
     }
 
     #[test]
