@@ -455,6 +455,14 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
             marks,
         },
     ];
+    let changes = resolution_changes(&lines);
+    let panels: Vec<Panel> = panels
+        .into_iter()
+        .map(|mut p| {
+            p.series.iter_mut().for_each(|s| break_at(s, &changes));
+            p
+        })
+        .collect();
     let img = draw_panels(&panels, 2, 520, 320)?;
     let mut caption = format!(
         "x: thousand images seen. {} evaluations, last at step {}",
@@ -465,6 +473,13 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
         let steps: Vec<String> = starts.iter().map(|(step, _)| step.to_string()).collect();
         caption += &format!(". Dashed: a stage of config.toml starts (step {})", steps.join(", "));
     }
+    if let Some(&k) = changes.last() {
+        caption += &format!(
+            ". Lines break where the evaluations' size changes (to {}² at step {})",
+            resolution(&lines[k]).unwrap_or(0),
+            lines[k]["step"].as_i64().unwrap_or(0)
+        );
+    }
     let mut with_caption = image::RgbImage::from_pixel(img.width(), img.height() + 22, image::Rgb([255, 255, 255]));
     image::imageops::overlay(&mut with_caption, &img, 0, 0);
     draw_text(&mut with_caption, 10, img.height() as i64 + 4, &caption, image::Rgb([20, 20, 20]), TEXT)?;
@@ -474,6 +489,21 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
 }
 
 /// A curve line's x: thousands of images seen.
+/// The indices of the evaluations scored at another resolution than the one before them.
+fn resolution_changes(lines: &[Value]) -> Vec<usize> {
+    (1..lines.len()).filter(|&k| resolution(&lines[k]) != resolution(&lines[k - 1])).collect()
+}
+
+/// Breaks a series of one point per evaluation before each of `changes`, with a NaN point
+/// (a gap): a score at 64² is not the quantity it was at 32², so the two are not joined.
+fn break_at(s: &mut Series, changes: &[usize]) {
+    for &k in changes.iter().rev() {
+        if let Some(&(x, _)) = s.points.get(k) {
+            s.points.insert(k, (x, f64::NAN));
+        }
+    }
+}
+
 fn thousand_images(l: &Value) -> f64 {
     l["images_seen"].as_f64().unwrap_or(f64::NAN) / 1000.0
 }
@@ -800,6 +830,20 @@ mod tests {
         assert!(!out.join("seeds-64.json").exists());
         // Shipped: the same step again leaves it as it is.
         assert!(ship(&run_dir, &out).unwrap().kept.is_none());
+    }
+
+    #[test]
+    fn series_break_where_the_evaluations_resolution_changes() {
+        let at = |step: i64, r: i64| json!({"step": step, "scores": {"resolution": r}});
+        let lines = [at(1, 32), at(2, 32), at(3, 64), at(4, 64), at(5, 128)];
+        assert_eq!(resolution_changes(&lines), [2, 4]);
+        let mut s = Series { name: "x".into(), points: (1..=5).map(|k| (k as f64, k as f64)).collect() };
+        break_at(&mut s, &[2, 4]);
+        let ys: Vec<f64> = s.points.iter().map(|p| p.1).collect();
+        assert_eq!(ys.len(), 7);
+        assert_eq!([ys[0], ys[1], ys[3], ys[4], ys[6]], [1.0, 2.0, 3.0, 4.0, 5.0]);
+        assert!(ys[2].is_nan() && ys[5].is_nan());
+        assert_eq!([s.points[2].0, s.points[5].0], [3.0, 5.0]);
     }
 
     #[test]
