@@ -101,11 +101,11 @@ fn spread(score: &str, model: Vec<f64>, real: Vec<f64>, random: Vec<f64>, positi
     } else {
         (keep(&model, &counted), keep(&real, &counted), keep(&random, &counted))
     };
-    let random_mean = if x.is_empty() { f64::NAN } else { mean(&x) };
     SeedSpread {
         score: score.to_string(),
         counted: counted.len(),
-        mean: Calibrated::new(mean(&m), mean(&r), random_mean),
+        // An empty random end's mean is NaN (0 / 0), and so is the position.
+        mean: Calibrated::new(mean(&m), mean(&r), mean(&x)),
         model_sd: sd(&m),
         random_sd: sd(&x),
         worst_position,

@@ -178,7 +178,7 @@ pub struct Shipped {
     /// Where the generator came from: its evaluation folder's copy, the run's checkpoint of
     /// that step, or `out` itself when it already held that step's export or kept its own.
     pub from: PathBuf,
-    /// Whether `out` already held that step's export and nothing was written.
+    /// Whether nothing was written: `out` already held that step's export, or kept its own.
     pub unchanged: bool,
     /// Where `out` holds another generator that ranks at or above the curve's best by the
     /// same rule, scored the same way ([`held_scores`]): that generator's standing (its
@@ -189,7 +189,7 @@ pub struct Shipped {
 /// A model folder's scores at resolution R besides its own `seeds.json`, named
 /// `seeds-R.json` (`seeds-64.json`): those of its generator scored at another resolution than
 /// the one it was shipped at, which an evaluation at R must beat to replace it.
-pub fn held_scores_name(resolution: i64) -> String {
+fn held_scores_name(resolution: i64) -> String {
     format!("seeds-{resolution}.json")
 }
 
@@ -488,7 +488,6 @@ pub fn plot(run_dir: &Path, starts: &[(i64, i64)]) -> Result<Option<PathBuf>> {
     Ok(Some(path))
 }
 
-/// A curve line's x: thousands of images seen.
 /// The indices of the evaluations scored at another resolution than the one before them.
 fn resolution_changes(lines: &[Value]) -> Vec<usize> {
     (1..lines.len()).filter(|&k| resolution(&lines[k]) != resolution(&lines[k - 1])).collect()
@@ -504,6 +503,7 @@ fn break_at(s: &mut Series, changes: &[usize]) {
     }
 }
 
+/// A curve line's x: thousands of images seen.
 fn thousand_images(l: &Value) -> f64 {
     l["images_seen"].as_f64().unwrap_or(f64::NAN) / 1000.0
 }
