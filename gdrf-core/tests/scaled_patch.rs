@@ -145,6 +145,31 @@ fn a_run_switches_to_scaled_patches_and_resumes_exactly() {
     assert!(same_params(&params(a.disc_vars()), &params(b.disc_vars())));
 }
 
+/// `loss.pose_min_scale` in the loop: with the bound at 1, a step whose patch is smaller than
+/// the image trains no pose term (D's on reals and fakes, G's are all exactly 0), while the
+/// same step without the bound trains them all; the adversarial terms are the same step's.
+#[test]
+fn the_pose_terms_skip_patches_below_the_bound() {
+    let dir = TempDir::new("scaled-patch-pose").unwrap();
+    let term = |r: &gdrf_core::train::StepReport, k: &str| {
+        r.d_terms.iter().chain(&r.g_terms).find(|(n, _)| *n == k).map(|(_, v)| *v).unwrap()
+    };
+    let mut reports = Vec::new();
+    for (name, bound) in [("every", 0.0), ("whole", 1.0)] {
+        let mut cfg = config(&dir.0, 0, patch(1.0, 1.0, 0));
+        cfg.loss.pose_min_scale = bound;
+        let mut t = Trainer::new(cfg, &dir.path(name)).unwrap();
+        t.prepare_data(&|_| {}).unwrap();
+        assert!(t.patches_now().unwrap()[0].scale < 1.0);
+        reports.push(run_steps(&mut t, 1).remove(0));
+    }
+    for k in ["d_pose_real", "d_pose_fake", "g_pose"] {
+        assert!(term(&reports[0], k) > 0.0, "{k} without the bound");
+        assert_eq!(term(&reports[1], k), 0.0, "{k} under the bound");
+    }
+    assert_eq!(term(&reports[0], "d_real").to_bits(), term(&reports[1], "d_real").to_bits());
+}
+
 /// Bad `[stages.patch]` settings are errors that name the key.
 #[test]
 fn bad_patch_settings_are_named() {

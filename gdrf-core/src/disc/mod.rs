@@ -250,6 +250,9 @@ pub struct DiscOutput {
     pub latent: Tensor,
     /// `(B, 2)` predicted (pitch, yaw).
     pub pose: Tensor,
+    /// `(B,)` the scale of the patch each image was judged through ([`Judge::judge_patches`]),
+    /// `None` for whole images: what the pose loss may count ([`crate::loss::gan::pose_loss_at`]).
+    pub scale: Option<Tensor>,
 }
 
 #[derive(Debug)]
@@ -341,6 +344,7 @@ impl Discriminator {
             logit: out.narrow(1, 0, 1),
             latent: out.narrow(1, 1, LATENT_DIM),
             pose: out.narrow(1, 1 + LATENT_DIM, 2),
+            scale: at.map(|a| a.select(1, 0)),
         })
     }
 }
@@ -483,6 +487,9 @@ mod tests {
         let placed = d.judge_patches(&img, 1.0, &at.to_kind(Kind::Float)).unwrap();
         assert!(!placed.logit.allclose(&plain.logit, 1e-6, 1e-6, false));
         assert!(d.judge_patches(&img, 1.0, &whole.narrow(0, 0, 1)).is_err());
+        // The verdict carries each patch's scale, for the pose loss; whole images none.
+        assert_eq!(Vec::<f32>::try_from(placed.scale.unwrap()).unwrap(), vec![0.25, 0.5]);
+        assert!(plain.scale.is_none());
     }
 
     #[test]

@@ -258,7 +258,7 @@ impl Judge for ProjectedDiscriminator {
         let logit = self.heads.iter().zip(&mixed).map(|(h, m)| h.forward(m)).reduce(|a, b| a + b).expect("four scales");
         let deepest = mixed.last().expect("four scales").adaptive_avg_pool2d([HEAD_SIDE, HEAD_SIDE]).flatten(1, -1);
         let aux = leaky_relu(&deepest).linear(&self.aux_weight, Some(&self.aux_bias));
-        Ok(DiscOutput { logit, latent: aux.narrow(1, 2, LATENT_DIM), pose: aux.narrow(1, 0, 2) })
+        Ok(DiscOutput { logit, latent: aux.narrow(1, 2, LATENT_DIM), pose: aux.narrow(1, 0, 2), scale: None })
     }
 
     fn used_parameters(&self, _size: i64) -> Result<i64> {

@@ -1,4 +1,5 @@
 //! Adversarial terms: non-saturating logistic or hinge losses, R1, the pose loss and top-k.
+use crate::disc::DiscOutput;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
@@ -95,6 +96,21 @@ pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Result<Tensor> {
 /// so ±π wrap-around costs nothing. `pred`, `target: (B, 2)`.
 pub fn pose_loss(pred: &Tensor, target: &Tensor) -> Tensor {
     (-(pred - target).cos() + 1.0).mean(pred.kind())
+}
+
+/// [`pose_loss`] on a verdict, counting only the images judged through patches of scale
+/// ≥ `min_scale` ([`DiscOutput::scale`]): the others' terms are 0, the mean still over the
+/// whole batch, so that an image that counts weighs what it weighs on whole images. With
+/// `min_scale` 0, or on whole images, it is [`pose_loss`] itself (the same operations, so
+/// that a run resumed without the bound stays bit-exact).
+pub fn pose_loss_at(out: &DiscOutput, target: &Tensor, min_scale: f64) -> Tensor {
+    match &out.scale {
+        Some(scale) if min_scale > 0.0 => {
+            let counts = scale.ge(min_scale).to_kind(out.pose.kind()).unsqueeze(1);
+            ((-(&out.pose - target).cos() + 1.0) * counts).mean(out.pose.kind())
+        }
+        _ => pose_loss(&out.pose, target),
+    }
 }
 
 /// The latent-prediction loss MSE(pred, z) (weight 0 in the release configs).

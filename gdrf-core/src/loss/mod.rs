@@ -35,6 +35,13 @@ pub struct LossConfig {
     /// be known), so the generator's pose loss asks for images whose pose reads as a real
     /// image's does, not as the discriminator has learned to read the generator's own.
     pub d_pose_fakes: bool,
+    /// Under the scaled-patch step, the pose terms (the discriminator's on reals and fakes,
+    /// the generator's) count only the images judged through patches of at least this scale
+    /// of the image's side ([`gan::pose_loss_at`]): a small patch shows too little of the
+    /// object for its pose to be read, and the discriminator's pose head then learns noise
+    /// that its gradient passes on to the generator. 0 (the default) counts every patch, 1
+    /// only whole images. Whole-image stages are not affected.
+    pub pose_min_scale: f64,
     /// Weight of the latent-prediction loss (0 in the release).
     pub latent_weight: f64,
     /// Weight of the capped mode-seeking term on the generator (0 in the release; see
@@ -85,6 +92,7 @@ impl Default for LossConfig {
             r1_interval: 1,
             pose_weight: 15.0,
             d_pose_fakes: true,
+            pose_min_scale: 0.0,
             latent_weight: 0.0,
             diversity_weight: 0.0,
             diversity_cap: 0.1,
@@ -130,6 +138,12 @@ impl LossConfig {
             "loss.coverage_resolution",
             self.coverage_resolution,
             "2 to 512 pixels",
+        )?;
+        require(
+            (0.0..=1.0).contains(&self.pose_min_scale),
+            "loss.pose_min_scale",
+            self.pose_min_scale,
+            "a scale in [0, 1] (0 every patch, 1 whole images only)",
         )?;
         require(self.coverage_interval >= 1, "loss.coverage_interval", self.coverage_interval, "at least 1")?;
         require(
@@ -248,7 +262,7 @@ pub fn discriminator_loss(
                 .into(),
         ));
     }
-    let pose_fake = gan::pose_loss(&fake.pose, fake_poses);
+    let pose_fake = gan::pose_loss_at(fake, fake_poses, cfg.pose_min_scale);
     let mut total = &d_real + &d_fake;
     if cfg.d_pose_fakes {
         total = total + &pose_fake * cfg.pose_weight;
@@ -261,7 +275,7 @@ pub fn discriminator_loss(
     }
     terms.push(("d_pose_fake", pose_fake));
     if let Some(rp) = real_poses {
-        let pose_real = gan::pose_loss(&real.pose, rp);
+        let pose_real = gan::pose_loss_at(real, rp, cfg.pose_min_scale);
         total = total + &pose_real * cfg.pose_weight;
         terms.push(("d_pose_real", pose_real));
     }
@@ -341,6 +355,7 @@ mod tests {
             logit: Tensor::from_slice(&logit).view([2, 1]),
             latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)),
             pose: Tensor::from_slice(&pose).view([2, 2]),
+            scale: None,
         };
         let (real, fake) = (out([0.5, -0.2], [1.0, 0.0, 1.0, 0.5]), out([-0.4, 0.1], [0.0, 0.0, 0.5, 0.0]));
         let real_poses = Tensor::from_slice(&[1.0f64, 0.25, 1.0, 0.5]).view([2, 2]);
@@ -371,12 +386,50 @@ mod tests {
     }
 
     #[test]
+    fn the_pose_terms_count_only_patches_above_the_bound() {
+        let out = |scale: Option<[f64; 2]>| DiscOutput {
+            logit: Tensor::from_slice(&[0.5f64, -0.2]).view([2, 1]),
+            latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)),
+            pose: Tensor::from_slice(&[1.0f64, 0.0, 0.0, 0.5]).view([2, 2]),
+            scale: scale.map(|s| Tensor::from_slice(&s)),
+        };
+        let poses = Tensor::zeros([2, 2], (Kind::Double, Device::Cpu));
+        // Per image, 1 − cos over both angles: image 0 misses by 1, image 1 by 0.5.
+        let (p0, p1) = (1.0 - 1.0f64.cos(), 1.0 - 0.5f64.cos());
+        let every = LossConfig { r1_gamma: 0.0, ..Default::default() };
+        let bounded = LossConfig { pose_min_scale: 0.9, ..every.clone() };
+        let at = Schedule { step: 1, alpha: 1.0 };
+        let img = Tensor::zeros([2, 3, 4, 4], (Kind::Double, Device::Cpu));
+        let d_pose = |o: &DiscOutput, cfg: &LossConfig| {
+            let l = discriminator_loss(o, &img, Some(&poses), o, &poses, None, at, cfg).unwrap();
+            let g = GeneratorObjective::new(cfg, at).adversarial(o, &poses, None).unwrap();
+            let v = |l: &Losses, k: &str| l.get(k).unwrap().double_value(&[]);
+            (v(&l, "d_pose_real"), v(&l, "d_pose_fake"), v(&g, "g_pose"))
+        };
+        // Image 1's patch (scale 0.5) is below the bound: its term is 0, the mean over both.
+        let patches = out(Some([0.95, 0.5]));
+        for v in <[f64; 3]>::from(d_pose(&patches, &bounded)) {
+            assert!((v - p0 / 4.0).abs() < 1e-15, "{v}");
+        }
+        // The bound itself counts; no bound, or whole images, count every image.
+        let at_bound = d_pose(&out(Some([0.9, 0.9])), &bounded);
+        for v in [at_bound, d_pose(&patches, &every), d_pose(&out(None), &bounded)] {
+            for x in <[f64; 3]>::from(v) {
+                assert!((x - (p0 + p1) / 4.0).abs() < 1e-15, "{x}");
+            }
+        }
+        let e = LossConfig { pose_min_scale: 1.5, ..Default::default() }.validate().unwrap_err().to_string();
+        assert!(e.contains("loss.pose_min_scale"), "{e}");
+    }
+
+    #[test]
     fn generator_total_is_adversarial_plus_weighted_regularisers() {
         let logit = Tensor::from_slice(&[0.3f64, -1.0]).view([2, 1]);
         let d = DiscOutput {
             logit,
             latent: Tensor::zeros([2, 256], (Kind::Double, Device::Cpu)),
             pose: Tensor::zeros([2, 2], (Kind::Double, Device::Cpu)),
+            scale: None,
         };
         let poses = Tensor::from_slice(&[0.5f64, 0.0, 1.0, 0.0]).view([2, 2]);
         let c = |v: f64| Tensor::from(v);

@@ -37,7 +37,7 @@ impl<'a> GeneratorObjective<'a> {
         }
         let k = gan::topk_count(self.at.step, b, cfg.topk_interval, cfg.topk_floor);
         let adv = gan::g_adversarial(cfg.adversarial, &fake.logit, k);
-        let pose = gan::pose_loss(&fake.pose, poses);
+        let pose = gan::pose_loss_at(fake, poses, cfg.pose_min_scale);
         let mut total = &adv + &pose * cfg.pose_weight;
         let mut terms = vec![("g_adv", adv), ("g_pose", pose)];
         if cfg.latent_weight != 0.0 {
