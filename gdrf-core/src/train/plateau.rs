@@ -7,6 +7,9 @@
 //! the evaluations of the [`FLAT_STEPS`] before it by more than the score's noise: the
 //! median, over the whole curve, of how far the seeds of one evaluation lie apart. A gain
 //! smaller than two seeds of the same generator disagree by is not evidence of learning.
+//! Evaluations at different resolutions are different measurements (the calibrated ends and
+//! the scores move with it): an evaluation is compared, and its noise taken, only among those
+//! at its own resolution.
 use crate::stats::{mean, median};
 use serde_json::Value;
 
@@ -45,38 +48,27 @@ pub struct Verdict {
     pub improves: Vec<String>,
 }
 
+/// A curve line's evaluation resolution (`None` in lines written before it was recorded).
+fn resolution(line: &Value) -> Option<i64> {
+    line["scores"]["resolution"].as_i64()
+}
+
 /// Each curve line's verdict, in the curve's order.
 pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
-    let noise: Vec<f64> = FOLLOWED
-        .iter()
-        .map(|(name, key)| {
-            let spreads: Vec<f64> = lines
-                .iter()
-                .filter_map(|l| per_seed(l, name, key))
-                .filter(|v| v.len() > 1)
-                .map(|v| {
-                    v.iter().copied().fold(f64::NEG_INFINITY, f64::max)
-                        - v.iter().copied().fold(f64::INFINITY, f64::min)
-                })
-                .collect();
-            if spreads.is_empty() {
-                0.0
-            } else {
-                median(&spreads)
-            }
-        })
-        .collect();
+    let noise = |res: Option<i64>| -> Vec<f64> { noise_at(lines.iter().filter(|l| resolution(l) == res)) };
     lines
         .iter()
         .filter_map(|l| Some((l["step"].as_i64()?, l)))
         .map(|(step, line)| {
+            let res = resolution(line);
             let before: Vec<&Value> = lines
                 .iter()
+                .filter(|e| resolution(e) == res)
                 .filter(|e| e["step"].as_i64().is_some_and(|s| s < step && s >= step - FLAT_STEPS))
                 .collect();
             let improves = FOLLOWED
                 .iter()
-                .zip(&noise)
+                .zip(&noise(res))
                 .filter(|((name, key), noise)| {
                     let Some(now) = per_seed(line, name, key) else { return false };
                     let best = before
@@ -89,6 +81,29 @@ pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
                 .map(|((name, _), _)| name.to_string())
                 .collect();
             Verdict { step, improves }
+        })
+        .collect()
+}
+
+/// Each followed value's noise over `lines`: the median spread of its seeds.
+fn noise_at<'a>(lines: impl Iterator<Item = &'a Value> + Clone) -> Vec<f64> {
+    FOLLOWED
+        .iter()
+        .map(|(name, key)| {
+            let spreads: Vec<f64> = lines
+                .clone()
+                .filter_map(|l| per_seed(l, name, key))
+                .filter(|v| v.len() > 1)
+                .map(|v| {
+                    v.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+                        - v.iter().copied().fold(f64::INFINITY, f64::min)
+                })
+                .collect();
+            if spreads.is_empty() {
+                0.0
+            } else {
+                median(&spreads)
+            }
         })
         .collect()
 }
@@ -192,5 +207,26 @@ mod tests {
         assert!(standing(&later, Some(40231)).unwrap().flat(), "24 769 steps after the change");
         let s = standing(&flat, Some(20000)).unwrap();
         assert_eq!((s.since(), s.flat()), (25000, true));
+    }
+
+    #[test]
+    fn evaluations_are_compared_only_at_their_own_resolution() {
+        let at = |res: i64, mut l: Value| {
+            l["scores"]["resolution"] = json!(res);
+            l
+        };
+        // At 32² the Fréchet positions reach 0.9; the curve then evaluates at 64², where the
+        // same model stands lower and its seeds lie 0.1 apart.
+        let lines = [
+            at(32, line(5000, [0.88, 0.90], [0.7, 0.7])),
+            at(32, line(10000, [0.89, 0.91], [0.7, 0.7])),
+            at(64, line(15000, [0.60, 0.70], [0.7, 0.7])),
+            at(64, line(20000, [0.72, 0.82], [0.7, 0.7])), // +0.12 over 15 000 > its noise 0.1
+            at(64, line(25000, [0.75, 0.85], [0.7, 0.7])), // +0.03: within it
+        ];
+        let improves: Vec<bool> = verdicts(&lines).iter().map(|v| !v.improves.is_empty()).collect();
+        // Against the 32² positions (0.90), step 20 000's 0.77 would be no gain; against
+        // 32²'s noise (0.02), step 25 000's +0.03 would be one.
+        assert_eq!(improves, [false, false, false, true, false]);
     }
 }
