@@ -496,6 +496,8 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!(cpu.switch_step(205_046), None);
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
+    // From step 215 145 the pose terms count only patches of at least 0.9 of the side.
+    assert_eq!(cpu.loss.pose_min_scale, 0.9);
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
         g.batch_size = c.batch_size;
