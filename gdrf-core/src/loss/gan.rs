@@ -95,7 +95,12 @@ pub fn r1_penalty(real_logit: &Tensor, real: &Tensor) -> Result<Tensor> {
 /// Pose loss: mean over the batch and both angles of 1 − cos(pred − target); periodic,
 /// so ±π wrap-around costs nothing. `pred`, `target: (B, 2)`.
 pub fn pose_loss(pred: &Tensor, target: &Tensor) -> Tensor {
-    (-(pred - target).cos() + 1.0).mean(pred.kind())
+    pose_terms(pred, target).mean(pred.kind())
+}
+
+/// Each entry's 1 − cos(pred − target), `(B, 2)`.
+fn pose_terms(pred: &Tensor, target: &Tensor) -> Tensor {
+    -(pred - target).cos() + 1.0
 }
 
 /// [`pose_loss`] on a verdict, counting only the images judged through patches of scale
@@ -107,7 +112,7 @@ pub fn pose_loss_at(out: &DiscOutput, target: &Tensor, min_scale: f64) -> Tensor
     match &out.scale {
         Some(scale) if min_scale > 0.0 => {
             let counts = scale.ge(min_scale).to_kind(out.pose.kind()).unsqueeze(1);
-            ((-(&out.pose - target).cos() + 1.0) * counts).mean(out.pose.kind())
+            (pose_terms(&out.pose, target) * counts).mean(out.pose.kind())
         }
         _ => pose_loss(&out.pose, target),
     }

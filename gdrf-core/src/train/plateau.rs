@@ -55,7 +55,13 @@ fn resolution(line: &Value) -> Option<i64> {
 
 /// Each curve line's verdict, in the curve's order.
 pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
-    let noise = |res: Option<i64>| -> Vec<f64> { noise_at(lines.iter().filter(|l| resolution(l) == res)) };
+    // Each resolution's noise, once.
+    let mut noise: Vec<(Option<i64>, Vec<f64>)> = Vec::new();
+    for res in lines.iter().map(resolution) {
+        if !noise.iter().any(|(r, _)| *r == res) {
+            noise.push((res, noise_at(lines.iter().filter(|l| resolution(l) == res))));
+        }
+    }
     lines
         .iter()
         .filter_map(|l| Some((l["step"].as_i64()?, l)))
@@ -68,7 +74,7 @@ pub fn verdicts(lines: &[Value]) -> Vec<Verdict> {
                 .collect();
             let improves = FOLLOWED
                 .iter()
-                .zip(&noise(res))
+                .zip(&noise.iter().find(|(r, _)| *r == res).expect("every line's resolution").1)
                 .filter(|((name, key), noise)| {
                     let Some(now) = per_seed(line, name, key) else { return false };
                     let best = before
