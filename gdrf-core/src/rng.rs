@@ -100,6 +100,8 @@ pub enum Purpose {
     GenBackground = 31,
     /// The scaled-patch step's scales and offsets, shared by both players' updates.
     Patches = 32,
+    /// The shape codes of the training-time occupancy grid's refreshes.
+    OccupancyCodes = 33,
 }
 
 /// A source of uniform and normal tensors.

@@ -757,6 +757,17 @@ fn composites_real_images_through_their_alpha(name: &str, background: Background
     colours
 }
 
+/// Runs `cfg` to its end in DIR/a, then copies that run folder to each of `copies`.
+fn finished_run_copied(dir: &TempDir, cfg: &TrainConfig, copies: &[&str]) {
+    let mut t = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
+    t.prepare_data(&|_| {}).unwrap();
+    assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
+    drop(t);
+    for c in copies {
+        copy_dir(&dir.path("a"), &dir.path(c));
+    }
+}
+
 /// A run switches to random backgrounds by `--resume --config` (the one [generator] key that
 /// may change), continues exactly after a resume, and exports a generator that says so.
 #[test]
@@ -765,11 +776,7 @@ fn a_run_switches_to_random_backgrounds_and_resumes_exactly() {
     let mut cfg = tiny_config(&dir.0, "");
     cfg.schedule.total_steps = 2;
     cfg.schedule.checkpoint_interval = 100;
-    let mut t = Trainer::new(cfg.clone(), &dir.path("a")).unwrap();
-    t.prepare_data(&|_| {}).unwrap();
-    assert_eq!(t.run(RunLimits::default(), &never(), |_, _| {}).unwrap(), Stopped::Finished);
-    drop(t);
-    copy_dir(&dir.path("a"), &dir.path("b"));
+    finished_run_copied(&dir, &cfg, &["b"]);
     let mut random = cfg.clone();
     random.schedule.total_steps = 10;
     random.generator.background = Background::Random;
@@ -802,4 +809,69 @@ fn a_run_switches_to_random_backgrounds_and_resumes_exactly() {
     assert_eq!(ckpts.iter().map(|c| c.0).collect::<Vec<_>>(), [2, 6]);
     let before = load_generator(&ckpts[0].1, Device::Cpu, Kind::Float).unwrap();
     assert_eq!(before.generator.cfg.background, Background::Learned);
+}
+
+/// The training-time occupancy grid (`[occupancy]`): a run switches it on by `--resume
+/// --config`, and the next step builds it; the step's renders are clipped by it (the step
+/// differs from the same step without it); its scores are saved with the state, and a run
+/// resumed between two refreshes continues exactly, which it can only do from the saved
+/// scores (after two refreshes they hold a decayed ½ that no single build gives).
+#[test]
+fn a_run_switches_the_training_grid_on_and_resumes_exactly() {
+    use gdrf_core::train::config::OccupancyConfig;
+    use gdrf_core::train::occupancy::SCORE_TENSOR;
+    let dir = TempDir::new("train-occupancy").unwrap();
+    let mut cfg = tiny_config(&dir.0, "");
+    // The campaign's generator, whose chairs leave most of the cube empty (a fresh tiny
+    // one's density is about the same everywhere, so a grid is all or nothing).
+    let campaign = common::repo_root().join("models/chairs-campaign/generator.safetensors");
+    let loaded = load_generator(&campaign, Device::Cpu, Kind::Float)
+        .unwrap_or_else(|e| panic!("the committed campaign model is needed: {e}"));
+    cfg.generator = loaded.generator.cfg.clone();
+    cfg.init_generator = Some(campaign);
+    cfg.schedule.total_steps = 2;
+    cfg.schedule.checkpoint_interval = 100;
+    finished_run_copied(&dir, &cfg, &["b", "plain"]);
+    let mut plain_cfg = cfg.clone();
+    plain_cfg.schedule.total_steps = 10;
+    let mut gridded = plain_cfg.clone();
+    gridded.occupancy = Some(OccupancyConfig { every: 3, codes: 2, resolution: 16, threshold: 0.5, decay: 0.5 });
+
+    let without = run_steps(&mut Trainer::resume_with(&dir.path("plain"), plain_cfg).unwrap(), 1);
+    let mut a = Trainer::resume_with(&dir.path("a"), gridded.clone()).unwrap();
+    assert!(a.occupancy_grid().is_none(), "a run without a grid resumes without one");
+    // Steps 2 to 5: the grid is built at 2, refreshed at 3 and used as it is at 4 and 5.
+    let full = run_steps(&mut a, 4);
+    let fractions: Vec<f64> = full.iter().map(|r| r.occupancy.unwrap()).collect();
+    println!("occupied fractions {fractions:?}");
+    assert!(fractions.iter().all(|&f| f > 0.0 && f < 1.0), "a grid that clips some rays and not all: {fractions:?}");
+    assert_ne!(
+        (without[0].d_total.to_bits(), without[0].g_total.to_bits()),
+        (full[0].d_total.to_bits(), full[0].g_total.to_bits()),
+        "the grid changes the step's renders"
+    );
+    let score = &a.occupancy_grid().unwrap().score;
+    let between = i64::try_from(score.gt(0.0).logical_and(&score.lt(1.0)).sum(Kind::Int64)).unwrap();
+    assert!(between > 0, "after two refreshes, cells seen only by the first score ½");
+
+    let mut b = Trainer::resume_with(&dir.path("b"), gridded).unwrap();
+    run_steps(&mut b, 2); // steps 2 and 3, then a checkpoint
+    drop(b);
+    let (_, newest) = run::latest_checkpoint(&dir.path("b")).unwrap();
+    assert!(gdrf_core::checkpoint::load(&newest).unwrap().tensors.contains_key(SCORE_TENSOR));
+    let mut b = Trainer::resume(&dir.path("b"), None).unwrap();
+    assert_eq!(b.progress().step, 4);
+    let rest = run_steps(&mut b, 2);
+    for (x, y) in full[2..].iter().zip(&rest) {
+        assert_eq!(
+            (x.d_total.to_bits(), x.g_total.to_bits(), x.grad_norm_g.to_bits()),
+            (y.d_total.to_bits(), y.g_total.to_bits(), y.grad_norm_g.to_bits()),
+            "step {}",
+            x.step
+        );
+        assert_eq!(x.occupancy, y.occupancy);
+    }
+    assert!(same_params(&params(a.generator_vars()), &params(b.generator_vars())));
+    assert!(same_params(&params(a.disc_vars()), &params(b.disc_vars())));
+    assert!(a.occupancy_grid().unwrap().score.equal(&b.occupancy_grid().unwrap().score));
 }

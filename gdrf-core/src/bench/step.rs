@@ -16,6 +16,7 @@ use crate::train::config::{EmaConfig, OptimConfig, Precision};
 use crate::train::{PatchConfig, StepReport, TrainConfig, Trainer};
 use crate::{CameraConfig, Error, GeneratorConfig, Result};
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -43,6 +44,16 @@ pub struct Options {
     /// stage has patches. The PyTorch reference has no such step and is then skipped.
     #[arg(long, value_name = "P")]
     pub patch: Option<i64>,
+    /// The training-time occupancy grid (`[occupancy]` with its defaults): gdrf's steps clip
+    /// their rays to it; the grid's refresh is timed on its own (phase `occupancy refresh`,
+    /// due every `occupancy.every` steps). The reference has none, and is then skipped.
+    #[arg(long)]
+    pub occupancy: bool,
+    /// Start gdrf's generator from this generator file (`init_generator`), e.g.
+    /// models/chairs-campaign/generator.safetensors, so that the step renders, and a grid
+    /// sees, a trained model's empty space; its [generator] replaces the config's.
+    #[arg(long, value_name = "FILE")]
+    pub init_generator: Option<PathBuf>,
     /// Timed steps per implementation (the median is reported).
     #[arg(long, default_value_t = 3)]
     pub steps: usize,
@@ -156,7 +167,10 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
         format!("{}, {} CPU threads", a.device, runs[0].threads)
     };
     let n = a.nproc;
-    let phases = if n > 1 { vec!["step", "allreduce"] } else { vec!["step"] };
+    let mut phases = if n > 1 { vec!["step", "allreduce"] } else { vec!["step"] };
+    if a.occupancy {
+        phases.push(REFRESH);
+    }
     let doc = Timings { title, machine, settings: Some(settings), phases, runs };
     let mut name = format!("step-{stem}-stage{stage}-b{b}");
     if a.resolution.is_some() {
@@ -164,6 +178,12 @@ pub fn run(a: &Options) -> Result<Option<Timings<Settings>>> {
     }
     if let Some(p) = patch {
         name += &format!("-p{p}");
+    }
+    if a.init_generator.is_some() {
+        name += "-init";
+    }
+    if a.occupancy {
+        name += "-occ";
     }
     if a.device != "cpu" {
         name += &format!("-{}", a.device.replace(':', ""));
@@ -219,6 +239,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let n = a.nproc;
     let cfg_patch = cfg.stages[0].patch.clone();
+    let cfg_occupancy = cfg.occupancy.clone();
     let mut runs = Vec::new();
     if n == 1 {
         runs.push(measure(cfg.clone(), &tmp.join("run"), warmup, steps, cores, None)?);
@@ -230,7 +251,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
             r.implementation = "gdrf with libtorch's sine".into();
             runs.push(r);
         }
-        if !a.no_reference && cfg_patch.is_none() {
+        if !a.no_reference && cfg_patch.is_none() && cfg_occupancy.is_none() {
             runs.push(reference_run("bench_step.py", ref_args)?);
         }
     } else {
@@ -241,7 +262,7 @@ fn measure_all(a: &Options, cfg: TrainConfig, tmp: &Path, ref_args: &[String], b
         let mut ranks = ranks(a)?;
         ranks.implementation = format!("gdrf, {n} ranks × 1 thread");
         runs.push(ranks);
-        if !a.no_reference && cfg_patch.is_none() {
+        if !a.no_reference && cfg_patch.is_none() && cfg_occupancy.is_none() {
             for (world, threads) in [(1, n), (n, 1)] {
                 let mut args = ref_args.to_vec();
                 args.extend([format!("--threads={threads}"), format!("--world={world}")]);
@@ -376,6 +397,16 @@ fn step_config(a: &Options, tmp: &Path) -> Result<(TrainConfig, Vec<String>)> {
     if st.patch.is_some() {
         notes.push("the scaled-patch step: the PyTorch reference has none, and is not run".into());
     }
+    if a.occupancy {
+        cfg.occupancy = Some(Default::default());
+        notes.push("the training-time occupancy grid: the PyTorch reference has none, and is not run".into());
+    }
+    if let Some(path) = &a.init_generator {
+        let loaded = crate::checkpoint::load_generator(path, tch::Device::Cpu, tch::Kind::Float)?;
+        cfg.generator = loaded.generator.cfg.clone();
+        cfg.init_generator = Some(path.clone());
+        notes.push(format!("gdrf's generator starts from {}", path.display()));
+    }
     if st.regions > 1 {
         notes.push(format!(
             "gdrf runs the two-pass patch step ({} regions); the reference renders whole images",
@@ -466,16 +497,38 @@ fn measure(
     }
     let b = trainer.cfg.stages[0].batch_size as f64;
     let med = median(&samples);
+    let mut median_s: BTreeMap<String, f64> =
+        [("step".to_string(), med), ("allreduce".to_string(), median(&comm))].into();
+    let mut samples_s: BTreeMap<String, Vec<f64>> =
+        [("step".to_string(), samples), ("allreduce".to_string(), comm)].into();
+    let mut other = serde_json::Map::new();
+    if trainer.cfg.occupancy.is_some() {
+        let refresh: Vec<f64> = (0..steps)
+            .map(|_| {
+                let t = Instant::now();
+                trainer.refresh_grid_now().map(|()| t.elapsed().as_secs_f64())
+            })
+            .collect::<Result<_>>()?;
+        eprintln!("gdrf occupancy refresh: {:.2} s (median of {steps})", median(&refresh));
+        median_s.insert(REFRESH.into(), median(&refresh));
+        samples_s.insert(REFRESH.into(), refresh);
+        let grid = trainer.occupancy_grid().expect("a refreshed grid");
+        other.insert("occupied_fraction".into(), grid.occupied_fraction().into());
+        other.insert("refresh_queries".into(), grid.grid.evaluated.into());
+    }
     Ok(Run {
         implementation: "gdrf (tch)".into(),
         threads,
-        median_s: [("step".to_string(), med), ("allreduce".to_string(), median(&comm))].into(),
-        samples_s: [("step".to_string(), samples), ("allreduce".to_string(), comm)].into(),
+        median_s,
+        samples_s,
         peak_rss_mb: peak_rss_mb(),
         images_per_second: Some(b / med),
-        other: Default::default(),
+        other,
     })
 }
+
+/// The phase timing one refresh of the training-time occupancy grid.
+const REFRESH: &str = "occupancy refresh";
 
 /// The reference's flags for the same step (scripts/reference/bench_step.py).
 fn reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result<Vec<String>> {

@@ -15,7 +15,7 @@ pub mod staged;
 pub(crate) use composite::{background_share, on_background};
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
 pub use in_grid::Grids;
-pub use occupancy::{GridChoice, GridConfig, OccupancyGrid, AUTO_GRID_SAMPLES};
+pub use occupancy::{camera_half_extent, GridChoice, GridConfig, OccupancyGrid, AUTO_GRID_SAMPLES, COARSEST};
 pub use rays::{assemble, assemble_image, Image, Noise, RayColours, RaySamples, RenderedRays};
 pub use renderer::Renderer;
 pub use sampler::{Sampler, SamplerSpec, ShapeQuery};

@@ -48,7 +48,7 @@ impl<'a, F: RadianceField> Renderer<'a, F> {
     pub fn new(generator: &'a F, camera: &'a CameraConfig, config: &'a RenderConfig) -> Result<Self> {
         camera.validate()?;
         config.validate()?;
-        Ok(Self { setup: Setup { generator, camera, config, field: FieldOptions::default() } })
+        Ok(Self { setup: Setup { generator, camera, config, field: FieldOptions::default(), clip: None } })
     }
 
     /// The field's second answer: colours `(B, R, S, 3)` of every sample, sorted by depth,

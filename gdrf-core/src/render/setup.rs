@@ -2,6 +2,7 @@
 //! field options, and from them the samplers, the chunk loop, the view directions and the
 //! integration options. The renderer and its staged path are both built on it.
 use super::composite::CompositeOptions;
+use super::occupancy::OccupancyGrid;
 use super::rays::{Noise, RaySamples};
 use super::sampler::{SamplerSpec, ShapeQuery};
 use crate::camera::Rays;
@@ -18,6 +19,11 @@ pub struct Setup<'a, F: RadianceField = Generator> {
     pub camera: &'a CameraConfig,
     pub config: &'a RenderConfig,
     pub field: FieldOptions,
+    /// A grid shared by every image (training's, [`crate::train::config::OccupancyConfig`]):
+    /// each ray that meets one of its occupied cells and has no bounds of its own places its
+    /// samples between its first and last one; a ray that meets none keeps the camera's
+    /// whole interval, so that a grid which missed a shape never blanks it.
+    pub clip: Option<&'a OccupancyGrid>,
 }
 
 // By hand: a derive would ask `F: Copy`, and only references to F are held.
@@ -33,7 +39,13 @@ impl<F: RadianceField> Setup<'_, F> {
     /// samplers the config and the rays call for ([`SamplerSpec::sample`]). Missing noise
     /// is drawn from libtorch's generator.
     pub fn sample(&self, shape: &Film, rays: &Rays, noise: &Noise) -> Result<RaySamples> {
-        SamplerSpec::new(self.config, self.camera).sample(&self.shape_query(shape), rays, noise)
+        let spec = SamplerSpec::new(self.config, self.camera);
+        match self.clip {
+            Some(grid) if rays.bounds.is_none() && rays.occupied.is_none() => {
+                spec.sample(&self.shape_query(shape), &clipped(rays, grid, spec.range), noise)
+            }
+            _ => spec.sample(&self.shape_query(shape), rays, noise),
+        }
     }
 
     /// What samplers ask of the field: its shape side under `shape`.
@@ -85,5 +97,19 @@ impl<F: RadianceField> Setup<'_, F> {
             start += len;
         }
         Ok(parts)
+    }
+}
+
+/// `rays` with bounds: their occupied interval in `grid` where they meet it, the camera's
+/// `range` where they do not.
+fn clipped(rays: &Rays, grid: &OccupancyGrid, range: (f64, f64)) -> Rays {
+    let (near_far, hit) = tch::no_grad(|| grid.clip(rays, range.0, range.1));
+    let whole = Tensor::from_slice(&[range.0, range.1]).to_kind(near_far.kind()).to_device(near_far.device());
+    let bounds = near_far.where_self(&hit.unsqueeze(-1), &whole.view([1, 1, 2]));
+    Rays {
+        origins: rays.origins.shallow_clone(),
+        dirs: rays.dirs.shallow_clone(),
+        bounds: Some(bounds),
+        occupied: None,
     }
 }

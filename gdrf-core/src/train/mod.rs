@@ -10,6 +10,7 @@
 pub mod config;
 pub mod curve;
 pub mod hooks;
+pub mod occupancy;
 pub mod optim;
 mod parallel;
 pub mod pass;
@@ -109,6 +110,9 @@ pub struct StepReport {
     pub seconds: f64,
     /// Set when this step's failure triggered a rollback: the step the run went back to.
     pub rolled_back_to: Option<i64>,
+    /// The fraction of the training-time occupancy grid's cells this step's renders counted
+    /// as occupied (with `[occupancy]`).
+    pub occupancy: Option<f64>,
 }
 
 impl StepReport {
@@ -129,6 +133,7 @@ impl StepReport {
             images_seen: p.images_seen,
             lr_d: self.lr_d,
             lr_g: self.lr_g,
+            occupancy: self.occupancy,
             resolution: self.resolution,
             rollbacks: p.rollbacks,
             skipped_steps: p.skipped_steps,
@@ -160,6 +165,9 @@ pub struct MetricsLine<'a> {
     pub images_seen: i64,
     pub lr_d: f64,
     pub lr_g: f64,
+    /// The fraction of the training-time occupancy grid's cells occupied (with `[occupancy]`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub occupancy: Option<f64>,
     pub resolution: i64,
     pub rollbacks: i64,
     pub skipped_steps: i64,
@@ -194,6 +202,9 @@ pub struct Trainer {
     skipped: Vec<(PathBuf, String)>,
     /// The data-parallel group this trainer is a rank of ([`Trainer::join_group`]).
     group: Option<crate::dist::ProcessGroup>,
+    /// The training-time occupancy grid (`[occupancy]`), saved with the state; `None` until
+    /// the first step builds it.
+    pub(crate) grid: Option<occupancy::SharedGrid>,
 }
 
 impl Trainer {
@@ -227,6 +238,11 @@ impl Trainer {
 
     pub fn ema_vars(&self) -> &nn::VarStore {
         &self.evs
+    }
+
+    /// The training-time occupancy grid as the last step used it (`[occupancy]`).
+    pub fn occupancy_grid(&self) -> Option<&occupancy::SharedGrid> {
+        self.grid.as_ref()
     }
 
     pub fn disc_vars(&self) -> &nn::VarStore {

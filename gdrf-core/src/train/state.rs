@@ -2,7 +2,7 @@
 //! both optimisers' moments and the counters), the exported EMA generator, and the
 //! rollback to the last good checkpoint.
 use super::optim::{copy_vars, Adam, Ema};
-use super::{curve, run, Progress, TrainConfig, Trainer, TrainingHeader};
+use super::{curve, occupancy, run, Progress, TrainConfig, Trainer, TrainingHeader};
 use crate::checkpoint::{self, Header};
 use crate::{Error, Generator, GeneratorConfig, Result};
 use std::collections::{BTreeMap, BTreeSet};
@@ -70,6 +70,7 @@ impl Trainer {
             injected: BTreeSet::new(),
             skipped: Vec::new(),
             group: None,
+            grid: None,
         })
     }
 
@@ -128,6 +129,10 @@ impl Trainer {
             }
         }
         cfg.validate()?;
+        if t.cfg.occupancy != cfg.occupancy {
+            // Another grid (or none): the next step builds it afresh.
+            t.grid = None;
+        }
         t.cfg = cfg;
         t.generator.cfg.background = background;
         t.ema_generator.cfg.background = background;
@@ -189,6 +194,12 @@ impl Trainer {
         t.adam_d.load(&ckpt.tensors, "adam_d.", p.adam_d_t)?;
         t.ema.updates = p.ema_updates;
         t.progress = p;
+        // The training-time grid as the run left it; a state saved before its first step
+        // (or without `[occupancy]`) has none, and the next step builds it.
+        if let (Some(oc), Some(score)) = (&t.cfg.occupancy, ckpt.tensors.get(occupancy::SCORE_TENSOR)) {
+            let score = score.to_device(t.device);
+            t.grid = Some(occupancy::SharedGrid::from_score(score, &t.cfg.camera, oc).map_err(|e| bad(e.to_string()))?);
+        }
         Ok(t)
     }
 
@@ -240,6 +251,9 @@ impl Trainer {
         }
         out.extend(self.adam_g.named_tensors("adam_g."));
         out.extend(self.adam_d.named_tensors("adam_d."));
+        if let Some(g) = &self.grid {
+            out.push((occupancy::SCORE_TENSOR.to_string(), g.score.shallow_clone()));
+        }
         out
     }
 

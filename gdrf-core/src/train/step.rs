@@ -2,6 +2,7 @@
 //! updates on the real batch (`reals.rs`; two renders, or one render shared by both
 //! players), the draws and renderers of the coverage term (which the generator's objective
 //! adds), and the guarded application of each update.
+use super::occupancy::SharedGrid;
 use super::optim::{clip_grads, grad_norm, zero_grads};
 use super::parallel::GRADIENT_BUCKET_BYTES;
 use super::scaled::{render_fakes, Placed, StepPatches};
@@ -38,6 +39,7 @@ impl Trainer {
         let (g_lr, d_lr) = (g_lr * self.progress.lr_scale, d_lr * self.progress.lr_scale);
         let at = Schedule { step, alpha };
         let (b, res) = (stage.batch_size, stage.resolution);
+        self.refresh_grid(step)?;
 
         let real_all = self.real_batch(&stage, step)?;
         let (real, real_poses) = self.real_seen(&real_all, &stage, step)?;
@@ -84,6 +86,7 @@ impl Trainer {
             g_skipped: g.skipped,
             seconds,
             rolled_back_to: None,
+            occupancy: self.grid.as_ref().map(|g| g.occupied_fraction()),
         };
         if bad && self.progress.consecutive_bad >= self.cfg.guard.rollback_after {
             report.rolled_back_to = Some(self.rollback()?);
@@ -108,11 +111,45 @@ impl Trainer {
         on_background(img, &assemble(&shares, img.size()[2]), colours)
     }
 
-    /// The live generator's renderer with sampling config `rc`, at the configured precision.
+    /// The live generator's renderer with sampling config `rc`, at the configured precision,
+    /// clipping rays to the training-time occupancy grid where there is one.
     fn live_renderer<'a>(&'a self, rc: &'a crate::RenderConfig) -> Result<Renderer<'a>> {
         let mut r = Renderer::new(&self.generator, &self.cfg.camera, rc)?;
         r.field.compute_kind = self.cfg.precision.compute_kind(self.device);
+        r.clip = self.grid.as_ref().map(|g| &g.grid);
         Ok(r)
+    }
+
+    /// Refreshes the training-time occupancy grid now, as the next step would when one is
+    /// due (for benchmarks).
+    pub fn refresh_grid_now(&mut self) -> Result<()> {
+        let step = self.progress.step;
+        let every = self.cfg.occupancy.as_ref().map_or(1, |o| o.every);
+        self.refresh_grid(step.div_euclid(every) * every)
+    }
+
+    /// Builds the training-time occupancy grid at the run's first step under `[occupancy]`,
+    /// and refreshes it every `occupancy.every` steps, from `occupancy.codes` shape codes of
+    /// the step's own stream and the live generator as it stands before the step: every
+    /// rank of a group builds the same grid, and a resumed run the uninterrupted run's.
+    fn refresh_grid(&mut self, step: i64) -> Result<()> {
+        let Some(oc) = self.cfg.occupancy.clone() else {
+            self.grid = None;
+            return Ok(());
+        };
+        if self.grid.is_some() && step % oc.every != 0 {
+            return Ok(());
+        }
+        let z = self.rng(step, Purpose::OccupancyCodes).normal(&[oc.codes, self.cfg.generator.latent_dim as i64]);
+        let rc = self.cfg.render_config(step);
+        let grid = {
+            let mut renderer = self.live_renderer(&rc)?;
+            renderer.clip = None;
+            let shapes = tch::no_grad(|| self.generator.shape_from_z(&z, None));
+            SharedGrid::refresh(self.grid.as_ref(), &renderer, &shapes, &oc)?
+        };
+        self.grid = Some(grid);
+        Ok(())
     }
 
     /// One player's fake batch of `stage` at `step` ([`Draws`]), from the draws

@@ -12,8 +12,8 @@ use std::path::Path;
 
 mod sections;
 pub use sections::{
-    cpu_has_bf16, DebugConfig, EmaConfig, GuardConfig, OptimConfig, PatchConfig, Precision, SampleConfig,
-    ScheduleConfig, Stage, StepKind, TrainEvalConfig,
+    cpu_has_bf16, DebugConfig, EmaConfig, GuardConfig, OccupancyConfig, OptimConfig, PatchConfig, Precision,
+    SampleConfig, ScheduleConfig, Stage, StepKind, TrainEvalConfig,
 };
 
 /// A whole training run.
@@ -66,6 +66,10 @@ pub struct TrainConfig {
     pub guard: GuardConfig,
     #[serde(default)]
     pub debug: DebugConfig,
+    /// The training-time occupancy grid ([`OccupancyConfig`]); absent: every ray samples the
+    /// camera's whole interval.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub occupancy: Option<OccupancyConfig>,
     pub stages: Vec<Stage>,
     pub data: DataConfig,
 }
@@ -166,6 +170,7 @@ impl TrainConfig {
         self.validate_latent_weight()?;
         self.validate_eval()?;
         self.validate_previews()?;
+        self.validate_occupancy()?;
         let g = &self.guard;
         if g.rollback_after < 1 || !(g.lr_factor > 0.0 && g.lr_factor <= 1.0) || g.max_rollbacks < 0 {
             return Err(cfg_err(format!(
@@ -206,6 +211,31 @@ impl TrainConfig {
         }
         if !(0.0..1.0).contains(&self.ema.decay) {
             return Err(cfg_err(format!("ema.decay is {}, expected a value in [0, 1)", self.ema.decay)));
+        }
+        Ok(())
+    }
+
+    /// `[occupancy]`: a refresh interval and codes of at least 1, an even grid the renderer
+    /// can build, a finite threshold ≥ 0 and a decay in [0, 1).
+    fn validate_occupancy(&self) -> Result<()> {
+        let Some(o) = &self.occupancy else { return Ok(()) };
+        for (k, v) in [("occupancy.every", o.every), ("occupancy.codes", o.codes)] {
+            if v < 1 {
+                return Err(cfg_err(format!("{k} is {v}, expected at least 1")));
+            }
+        }
+        if !(crate::render::COARSEST..=512).contains(&o.resolution) || o.resolution % 2 != 0 {
+            return Err(cfg_err(format!(
+                "occupancy.resolution is {}, expected an even number of cells per side in {}..=512",
+                o.resolution,
+                crate::render::COARSEST
+            )));
+        }
+        if !(o.threshold >= 0.0 && o.threshold.is_finite()) {
+            return Err(cfg_err(format!("occupancy.threshold is {}, expected a finite density ≥ 0", o.threshold)));
+        }
+        if !(0.0..1.0).contains(&o.decay) {
+            return Err(cfg_err(format!("occupancy.decay is {}, expected a value in [0, 1)", o.decay)));
         }
         Ok(())
     }
@@ -574,11 +604,22 @@ path = "data/x"
             ("step = \"three-render\"", "step"),
             ("[generator]\ndeform_head_bias = \"random\"", "deform_head_bias"),
             ("[loss]\ndiversity_decay = -5", "loss.diversity_decay"),
+            ("[occupancy]\nevery = 0", "occupancy.every"),
+            ("[occupancy]\ncodes = 0", "occupancy.codes"),
+            ("[occupancy]\nresolution = 33", "occupancy.resolution"),
+            ("[occupancy]\nresolution = 8", "occupancy.resolution"),
+            ("[occupancy]\nthreshold = -1.0", "occupancy.threshold"),
+            ("[occupancy]\ndecay = 1.0", "occupancy.decay"),
+            ("[occupancy]\nrefresh = 4", "refresh"),
         ];
         for (extra, key) in cases {
             let e = parse(extra).unwrap_err().to_string();
             assert!(e.contains(key), "{extra:?}: {e}");
         }
+        // An empty [occupancy] table is the grid with its defaults; no table, no grid.
+        assert_eq!(parse("[occupancy]").unwrap().occupancy, Some(OccupancyConfig::default()));
+        assert_eq!(parse("").unwrap().occupancy, None);
+        assert!(!parse("").unwrap().to_toml().unwrap().contains("occupancy"), "a config without it stores none");
         let bad_stage = MIN.replace("resolution = 64", "resolution = 48");
         let e = TrainConfig::from_toml(&bad_stage, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].resolution") && e.contains("power of two"), "{e}");

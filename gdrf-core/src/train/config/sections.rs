@@ -77,6 +77,37 @@ fn one() -> i64 {
     1
 }
 
+/// The training-time occupancy grid (`[occupancy]`), nerfacc's `OccupancyGrid` estimator
+/// shared by all shape codes: every `every` steps, `codes` shape codes from the step's own
+/// stream each build their `resolution`³ grid from the generator being trained (the
+/// renderer's coarse-to-fine build, density above `threshold`, dilated by a cell); their
+/// union refreshes a score per cell (1 where seen, times `decay` at each refresh that did
+/// not see it), and a cell counts as occupied while its score is at least ½. Every ray of
+/// the step's renders that meets an occupied cell places its coarse samples between its
+/// first and last one; the others keep the camera's whole interval. The scores are part of
+/// the training state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OccupancyConfig {
+    /// Steps between refreshes (nerfacc: 16).
+    pub every: i64,
+    /// Shape codes per refresh.
+    pub codes: i64,
+    /// Cells per side (even, so that it builds coarse to fine).
+    pub resolution: i64,
+    /// Density softplus(σ) a cell must reach to be marked (the renderer's grid default).
+    pub threshold: f64,
+    /// A cell's score is multiplied by this at each refresh that does not see it (nerfacc's
+    /// `ema_decay`): at 0.95 it stays occupied 14 refreshes after it was last seen.
+    pub decay: f64,
+}
+
+impl Default for OccupancyConfig {
+    fn default() -> Self {
+        Self { every: 16, codes: 8, resolution: 32, threshold: 0.5, decay: 0.95 }
+    }
+}
+
 /// Adam (the release's betas (0, 0.9)) and gradient clipping.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
