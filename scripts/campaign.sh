@@ -13,7 +13,9 @@
 #   scripts/campaign.sh verify   [RUN_DIR]   resume a scratch copy of the committed state to its
 #                                            next logged step and compare that line with the run's
 #   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
-#                                            into models/chairs-campaign (gdrf-train ship)
+#                                            into models/chairs-campaign (gdrf-train ship); the
+#                                            first time it replaces the 32²-trained model, that
+#                                            one is kept in models/chairs-campaign-32
 #
 # RUN_DIR defaults to ../campaign/chairs, outside the checkout. The run records paths
 # relative to the repository root, so everything runs from there. The binary runs from a
@@ -115,7 +117,17 @@ PY
     ;;
   ship)
     cargo build --release --quiet -p gdrf-train
+    # The model trained at 32² (step 95 000) is kept in models/chairs-campaign-32 when a
+    # generator of the 64² stage first replaces it: scripts/figures.sh draws the two side by side.
+    before="$(mktemp)"
+    trap 'rm -f "$before"' EXIT
+    cp "$model/generator.safetensors" "$before"
     target/release/gdrf-train ship "$run" --out "$model"
+    if [ ! -f "$model-32/generator.safetensors" ] && ! cmp -s "$before" "$model/generator.safetensors"; then
+      mkdir -p "$model-32"
+      cp "$before" "$model-32/generator.safetensors.tmp" && mv -f "$model-32/generator.safetensors.tmp" "$model-32/generator.safetensors"
+      echo "campaign: kept the generator it replaced in $model-32"
+    fi
     ;;
   *)
     sed -n '2,20p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'

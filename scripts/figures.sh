@@ -10,6 +10,9 @@
 #   docs/images/invert-orbit-chairs-campaign.gif  the inverted features' 12-view orbit (32²)
 #   docs/images/serve.png                       gdrf-edit serve's page in headless Chromium, after
 #                                               its browser test (turned, swapped, a photo inverted)
+#   docs/images/side-by-side-64.png             where models/chairs-campaign-32 holds the model
+#                                               trained at 32² (kept by `campaign.sh ship`): its
+#                                               turntable beside the shipped model's, same seeds, 64²
 # Intermediate outputs go to out/figures/. Release binaries: 2 min 21 s on two cores.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -37,6 +40,12 @@ place "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
   --num 500 --resolution 32 --samples 12 --out "$tmp/eval"
 place "$tmp/eval/report.png" docs/images/eval-chairs-campaign.png
+if [ -f models/chairs-campaign-32/generator.safetensors ]; then
+  "$edit" render --checkpoint models/chairs-campaign-32/generator.safetensors --seeds 0,1,2,3,4,5 --views 4 \
+    --resolution 64 --samples 12 --no-jitter --out "$tmp/turntable-32.png"
+  "${GDRF_PYTHON:-.venv/bin/python}" scripts/side_by_side.py "$tmp/turntable-32.png" "$dir/turntable-64.png" \
+    docs/images/side-by-side-64.png "trained at 32 px (step 95 000)" "trained at 64 px (shipped)"
+fi
 # A held-out chair of the dataset (never trained on), its pose estimated (the defaults).
 "$invert" data/chairs-64/images/000020.png --generator "$model" --orbit 12 \
   --out "$tmp/invert" --force --quiet
