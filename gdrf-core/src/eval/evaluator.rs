@@ -130,6 +130,7 @@ fn low_resolution_end(resolution: i64, s: &Scores) -> LowResolutionEnd {
         pose_yaw_error_deg: s.pose.yaw,
         pose_yaw_error_in_frame_deg: s.pose.yaw_in_frame,
         pose_pitch_error_deg: s.pose.pitch,
+        pitch_bias_deg: s.pose.pitch_bias,
     }
 }
 
@@ -420,7 +421,13 @@ impl Scores {
             histograms: Vec::new(),
             shape_follows: f64::NAN,
             appearance_follows: f64::NAN,
-            pose: PoseErrors { yaw: f64::NAN, yaw_in_frame: f64::NAN, yaw_offset: f64::NAN, pitch: f64::NAN },
+            pose: PoseErrors {
+                yaw: f64::NAN,
+                yaw_in_frame: f64::NAN,
+                yaw_offset: f64::NAN,
+                pitch: f64::NAN,
+                pitch_bias: f64::NAN,
+            },
             samples: none.shallow_clone(),
             swap_images: none,
             swap_verdicts: Vec::new(),
@@ -545,6 +552,11 @@ pub fn score_generator(
             random: rand.pose.yaw_offset,
         },
         pose_pitch_error_deg: c(|s| s.pose.pitch),
+        pitch_bias_deg: FrameOffsets {
+            model: model.pose.pitch_bias,
+            real: real.pose.pitch_bias,
+            random: rand.pose.pitch_bias,
+        },
         real_at_resolution: ev.real_low.clone(),
         probe_held_out_accuracy: ev.probe.header.held_out.accuracy.clone(),
         seconds: start.elapsed().as_secs_f64(),

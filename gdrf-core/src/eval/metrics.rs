@@ -90,6 +90,9 @@ pub struct PoseErrors {
     pub yaw_offset: f64,
     /// Mean |pitch error| (pitch is tied to the world's up axis: not aligned).
     pub pitch: f64,
+    /// Mean signed pitch error, probe − rendered: the part of [`Self::pitch`] that a tilt
+    /// common to every image explains (the rest is spread).
+    pub pitch_bias: f64,
 }
 
 fn wrap_deg(x: f64) -> f64 {
@@ -124,6 +127,7 @@ pub(crate) fn pose_errors(pred: &Predictions, truth: &Tensor) -> PoseErrors {
         yaw_in_frame,
         yaw_offset,
         pitch: f64::try_from(dp.abs().mean(Kind::Double)).unwrap(),
+        pitch_bias: f64::try_from(dp.mean(Kind::Double)).unwrap(),
     }
 }
 
@@ -221,10 +225,11 @@ mod tests {
         // Unaligned: 94, 88, 90, 96 (−89° − 175° = −264° wraps to 96°), 91.
         assert!(close(e.yaw, (94.0 + 88.0 + 90.0 + 96.0 + 91.0) / 5.0), "{e:?}");
         assert!(close(e.pitch, 2.0), "{e:?}");
+        assert!(close(e.pitch_bias, 2.0), "every pitch read high: {e:?}");
         // A probe that reads the rendered yaw exactly: no rotation, no error.
         let exact = Predictions { poses: truth.shallow_clone(), ..pred };
         let e = pose_errors(&exact, &truth);
-        assert_eq!((e.yaw, e.yaw_in_frame, e.yaw_offset, e.pitch), (0.0, 0.0, 0.0, 0.0));
+        assert_eq!((e.yaw, e.yaw_in_frame, e.yaw_offset, e.pitch, e.pitch_bias), (0.0, 0.0, 0.0, 0.0, 0.0));
     }
 
     #[test]

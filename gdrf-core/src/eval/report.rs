@@ -33,6 +33,11 @@ pub fn summary(r: &EvalResult) -> String {
         "yaw in its own frame: turned by (probe − rendered) {:.1}° model, {:.1}° real, {:.1}° random\n",
         o.model, o.real, o.random
     );
+    let o = &r.pitch_bias_deg;
+    s += &format!(
+        "pitch read high by (probe − rendered, mean) {:.1}° model, {:.1}° real, {:.1}° random\n",
+        o.model, o.real, o.random
+    );
     if let Some(line) = low_resolution_line(r) {
         s += &line;
         s.push('\n');
@@ -48,7 +53,7 @@ fn low_resolution_line(r: &EvalResult) -> Option<String> {
     r.real_at_resolution.as_ref().map(|l| {
         format!(
             "real images at {}² (down and back up): frechet {:.4}, kernel {:.4}, coverage tv {:.4}, shape {:.4}, \
-             appearance {:.4}, yaw {:.1}° ({:.1}° in its own frame), pitch {:.1}°",
+             appearance {:.4}, yaw {:.1}° ({:.1}° in its own frame), pitch {:.1}° (read high by {:.1}°)",
             l.resolution,
             l.frechet,
             l.kernel,
@@ -57,7 +62,8 @@ fn low_resolution_line(r: &EvalResult) -> Option<String> {
             l.appearance_follows,
             l.pose_yaw_error_deg,
             l.pose_yaw_error_in_frame_deg,
-            l.pose_pitch_error_deg
+            l.pose_pitch_error_deg,
+            l.pitch_bias_deg
         )
     })
 }
@@ -98,7 +104,7 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
     let width = (grid.width() as i64).max(k * cell + 20).max(text + 10).max(620) + 20;
     let hist_h = 150;
     let low_lines = if r.real_at_resolution.is_some() { 2 } else { 0 };
-    let height = 20 + 14 * (11 + low_lines) + 20 + grid.height() as i64 + 30 + hist_h + 44 + k * cell + 20;
+    let height = 20 + 14 * (12 + low_lines) + 20 + grid.height() as i64 + 30 + hist_h + 44 + k * cell + 20;
     let mut img = image::RgbImage::from_pixel(width as u32, height as u32, Rgb([255, 255, 255]));
     let black = Rgb([0, 0, 0]);
     let mut y = 10;
@@ -130,6 +136,10 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
         o.model, o.real, o.random
     );
     draw_text(&mut img, 10, y, &line, black, TEXT)?;
+    y += 14;
+    let o = &r.pitch_bias_deg;
+    let line = format!("pitch read high by {:.1} (model) {:.1} (real) {:.1} (random) deg", o.model, o.real, o.random);
+    draw_text(&mut img, 10, y, &line, black, TEXT)?;
     if let Some(l) = &r.real_at_resolution {
         let lines = [
             format!(
@@ -137,8 +147,8 @@ pub fn report_image(r: &EvalResult) -> Result<image::RgbImage> {
                 l.resolution, l.resolution, l.frechet, l.kernel, l.coverage_tv, l.shape_follows, l.appearance_follows
             ),
             format!(
-                "  yaw {:.1} ({:.1} in its own frame) pitch {:.1} deg",
-                l.pose_yaw_error_deg, l.pose_yaw_error_in_frame_deg, l.pose_pitch_error_deg
+                "  yaw {:.1} ({:.1} in its own frame) pitch {:.1} (read high by {:.1}) deg",
+                l.pose_yaw_error_deg, l.pose_yaw_error_in_frame_deg, l.pose_pitch_error_deg, l.pitch_bias_deg
             ),
         ];
         for line in lines {

@@ -36,9 +36,12 @@ pub struct LowResolutionEnd {
     pub pose_yaw_error_deg: f64,
     pub pose_yaw_error_in_frame_deg: f64,
     pub pose_pitch_error_deg: f64,
+    /// The mean signed pitch error ([`EvalResult::pitch_bias_deg`]).
+    pub pitch_bias_deg: f64,
 }
 
-/// The yaw rotation found for the model, the real images and the random generator (degrees).
+/// A pose offset found for the model, the real images and the random generator (degrees):
+/// the yaw rotation of each one's frame, or its mean signed pitch error.
 #[derive(Debug, Clone, Serialize)]
 pub struct FrameOffsets {
     pub model: f64,
@@ -83,6 +86,9 @@ pub struct EvalResult {
     /// That rotation, per distribution.
     pub yaw_frame_offset_deg: FrameOffsets,
     pub pose_pitch_error_deg: Calibrated,
+    /// The pitch error's mean sign, probe − rendered, per distribution: how much of it is a
+    /// tilt every image shares ([`PoseErrors::pitch_bias`]).
+    pub pitch_bias_deg: FrameOffsets,
     /// The real images seen at a lower resolution, when asked for.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub real_at_resolution: Option<LowResolutionEnd>,
