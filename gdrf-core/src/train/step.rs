@@ -143,8 +143,8 @@ impl Trainer {
         let z = self.rng(step, Purpose::OccupancyCodes).normal(&[oc.codes, self.cfg.generator.latent_dim as i64]);
         let rc = self.cfg.render_config(step);
         let grid = {
-            let mut renderer = self.live_renderer(&rc)?;
-            renderer.clip = None;
+            // Builds query the lattice alone: the renderer's clip is never consulted.
+            let renderer = self.live_renderer(&rc)?;
             let shapes = tch::no_grad(|| self.generator.shape_from_z(&z, None));
             SharedGrid::refresh(self.grid.as_ref(), &renderer, &shapes, &oc)?
         };
