@@ -4,10 +4,12 @@
 #   models/chairs-campaign/turntable-64.png     seeds 0–5 in rows, 4 views (64², 12 + 12 samples)
 #   models/chairs-campaign/swap-matrix-64.png   shape of seed i in row i, appearance of seed j in column j
 #   docs/images/orbit-chairs-campaign.gif       seed 0's shape with seed 2's appearance, 24 views
-#   docs/images/eval-chairs-campaign.png        the seed-0 evaluation report at 32² (500 images)
+#   docs/images/eval-chairs-campaign.png        the seed-0 evaluation report at 64² (500 images,
+#                                               a 16 × 16 swap matrix: the curve's settings)
 #   docs/images/invert-chairs-campaign.png      a held-out photo inverted: photo, reconstruction,
 #                                               four novel views, its appearance on seed 0's shape
-#   docs/images/invert-orbit-chairs-campaign.gif  the inverted features' 12-view orbit (32²)
+#   docs/images/invert-orbit-chairs-campaign.gif  the inverted features' 12-view orbit (where the
+#                                               model learned)
 #   docs/images/serve.png                       gdrf-edit serve's page in headless Chromium, after
 #                                               its browser test (turned, swapped, a photo inverted)
 #   docs/images/side-by-side-64.png             where models/chairs-campaign-32 holds the model
@@ -38,7 +40,7 @@ place() { cp "$1" "$2.tmp" && mv -f "$2.tmp" "$2"; }
   --samples 12 --out "$tmp/orbit" --force
 place "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
-  --num 500 --resolution 32 --samples 12 --out "$tmp/eval"
+  --num 500 --resolution 64 --swap 16 --samples 12 --out "$tmp/eval"
 place "$tmp/eval/report.png" docs/images/eval-chairs-campaign.png
 if [ -f models/chairs-campaign-32/generator.safetensors ]; then
   "$edit" render --checkpoint models/chairs-campaign-32/generator.safetensors --seeds 0,1,2,3,4,5 --views 4 \
