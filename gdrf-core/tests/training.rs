@@ -467,7 +467,8 @@ fn every_shipped_config_loads_and_validates() {
 /// all three stages: step 0's, from step 140 231 the same at a quarter of the learning
 /// rates, and from step 205 046 the same at 64² on the scaled-patch step (32² patches, whose
 /// discriminator input, what the 32² stages trained, fades nothing in), with the curve
-/// evaluated at 64².
+/// evaluated at 64², and the pose terms on whole-chair patches at the weight that makes up
+/// for their count.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -496,8 +497,12 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!(cpu.switch_step(205_046), None);
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
-    // From step 215 145 the pose terms count only patches of at least 0.9 of the side.
-    assert_eq!(cpu.loss.pose_min_scale, 0.9);
+    // From step 215 145 the pose terms count only patches of at least 0.9 of the side, and
+    // from step 226 201 they weigh 54, 15 / 0.276 (the chance that a patch at the final β
+    // 0.8 is counted), so a counted patch weighs what a 32² image did.
+    assert_eq!((cpu.loss.pose_min_scale, cpu.loss.pose_weight), (0.9, 54.0));
+    let counted = (1.0f64 - 0.8).powf(0.8);
+    assert!((15.0 / counted - cpu.loss.pose_weight).abs() < 0.5, "{counted}");
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
         g.batch_size = c.batch_size;
