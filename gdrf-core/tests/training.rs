@@ -498,10 +498,14 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
     // From step 215 145 the pose terms count only patches of at least 0.9 of the side, and
-    // from step 226 201 they weigh 54, 15 / 0.276 (the chance that a patch at the final β
-    // 0.8 is counted), so a counted patch weighs what a 32² image did.
+    // from step 226 201 they weigh 54, 15 over the chance that a patch is counted at the
+    // final β (scale P/R + (1 − P/R)·x, x ~ Beta(1, β)), so a counted patch weighs what a
+    // 32² image did.
     assert_eq!((cpu.loss.pose_min_scale, cpu.loss.pose_weight), (0.9, 54.0));
-    let counted = (1.0f64 - 0.8).powf(0.8);
+    let min_scale = p.size as f64 / 64.0;
+    let x = (cpu.loss.pose_min_scale - min_scale) / (1.0 - min_scale);
+    let counted = (1.0 - x).powf(p.beta_end);
+    assert!((counted - 0.276).abs() < 5e-4, "{counted}");
     assert!((15.0 / counted - cpu.loss.pose_weight).abs() < 0.5, "{counted}");
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
