@@ -464,11 +464,11 @@ fn every_shipped_config_loads_and_validates() {
 
 /// The campaign's two continuation configs hold the same keys but for the GPU's float32
 /// (the CPU's "auto": bfloat16 where the CPU has bfloat16 instructions) and batch 32, in
-/// all three stages: step 0's, from step 140 231 the same at a quarter of the learning
-/// rates, and from step 205 046 the same at 64² on the scaled-patch step (32² patches, whose
+/// all four stages: step 0's, from step 140 231 the same at a quarter of the learning
+/// rates, from step 205 046 the same at 64² on the scaled-patch step (32² patches, whose
 /// discriminator input, what the 32² stages trained, fades nothing in), with the curve
-/// evaluated at 64², and the pose terms on whole-chair patches at the weight that makes up
-/// for their count.
+/// evaluated at 64², and from step 230 457 the same with larger patches; the pose terms on
+/// whole-chair patches at the weight that makes up for their count.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -477,7 +477,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8], vec![32, 32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8], vec![32, 32, 32, 32]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -497,16 +497,26 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!(cpu.switch_step(205_046), None);
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
-    // From step 215 145 the pose terms count only patches of at least 0.9 of the side, and
-    // from step 226 201 they weigh 54, 15 over the chance that a patch is counted at the
-    // final β (scale P/R + (1 − P/R)·x, x ~ Beta(1, β)), so a counted patch weighs what a
-    // 32² image did.
-    assert_eq!((cpu.loss.pose_min_scale, cpu.loss.pose_weight), (0.9, 54.0));
+    // From step 230 457 only the patches' final β changes (0.8 to 0.4): nothing fades in.
+    let mut larger = cpu.stages[3].clone();
+    assert_eq!(larger.from_step, 230_457);
+    let q = larger.patch.as_mut().expect("the larger patches");
+    assert_eq!(q.beta_end, 0.4);
+    q.beta_end = p.beta_end;
+    larger.from_step = cpu.stages[2].from_step;
+    assert_eq!(larger, cpu.stages[2]);
+    assert_eq!((cpu.switch_step(230_457), cpu.alpha(230_457)), (None, 1.0));
+    // From step 215 145 the pose terms count only patches of at least 0.9 of the side; their
+    // weight is 15 over the chance that a patch is counted at the final β (scale
+    // P/R + (1 − P/R)·x, x ~ Beta(1, β)), so a counted patch weighs what a 32² image did:
+    // 54 at β 0.8 (from step 226 201), 28.6 at β 0.4 (from step 230 457).
+    assert_eq!((cpu.loss.pose_min_scale, cpu.loss.pose_weight), (0.9, 28.6));
     let min_scale = p.size as f64 / 64.0;
     let x = (cpu.loss.pose_min_scale - min_scale) / (1.0 - min_scale);
-    let counted = (1.0 - x).powf(p.beta_end);
-    assert!((counted - 0.276).abs() < 5e-4, "{counted}");
-    assert!((15.0 / counted - cpu.loss.pose_weight).abs() < 0.5, "{counted}");
+    let counted = |beta: f64| (1.0 - x).powf(beta);
+    assert!((counted(0.8) - 0.276).abs() < 5e-4, "{}", counted(0.8));
+    assert!((counted(0.4) - 0.525).abs() < 5e-4, "{}", counted(0.4));
+    assert!((15.0 / counted(0.4) - cpu.loss.pose_weight).abs() < 0.05, "{}", counted(0.4));
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
         g.batch_size = c.batch_size;
