@@ -497,26 +497,31 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!(cpu.switch_step(205_046), None);
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
-    // From step 230 457 only the patches' final β changes (0.8 to 0.4): nothing fades in.
+    // From step 230 457 only the patches' final β (0.8 to 0.4) and the pose weight change:
+    // nothing fades in.
     let mut larger = cpu.stages[3].clone();
-    assert_eq!(larger.from_step, 230_457);
+    assert_eq!((larger.from_step, larger.pose_weight), (230_457, Some(28.6)));
     let q = larger.patch.as_mut().expect("the larger patches");
     assert_eq!(q.beta_end, 0.4);
     q.beta_end = p.beta_end;
-    larger.from_step = cpu.stages[2].from_step;
+    (larger.from_step, larger.pose_weight) = (cpu.stages[2].from_step, None);
     assert_eq!(larger, cpu.stages[2]);
     assert_eq!((cpu.switch_step(230_457), cpu.alpha(230_457)), (None, 1.0));
     // From step 215 145 the pose terms count only patches of at least 0.9 of the side; their
     // weight is 15 over the chance that a patch is counted at the final β (scale
     // P/R + (1 − P/R)·x, x ~ Beta(1, β)), so a counted patch weighs what a 32² image did:
     // 54 at β 0.8 (from step 226 201), 28.6 at β 0.4 (from step 230 457).
-    assert_eq!((cpu.loss.pose_min_scale, cpu.loss.pose_weight), (0.9, 28.6));
+    assert_eq!(cpu.loss.pose_min_scale, 0.9);
+    assert_eq!([226_201, 230_456, 230_457].map(|s| cpu.loss_at(s).pose_weight), [54.0, 54.0, 28.6]);
     let min_scale = p.size as f64 / 64.0;
     let x = (cpu.loss.pose_min_scale - min_scale) / (1.0 - min_scale);
     let counted = |beta: f64| (1.0 - x).powf(beta);
     assert!((counted(0.8) - 0.276).abs() < 5e-4, "{}", counted(0.8));
     assert!((counted(0.4) - 0.525).abs() < 5e-4, "{}", counted(0.4));
-    assert!((15.0 / counted(0.4) - cpu.loss.pose_weight).abs() < 0.05, "{}", counted(0.4));
+    for (step, beta, tolerance) in [(230_456, 0.8, 0.5), (230_457, 0.4, 0.05)] {
+        let w = cpu.loss_at(step).pose_weight;
+        assert!((15.0 / counted(beta) - w).abs() < tolerance, "step {step}: {w}");
+    }
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
         g.batch_size = c.batch_size;

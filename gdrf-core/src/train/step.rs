@@ -246,7 +246,7 @@ impl Trainer {
             &draws.judged_poses,
             Some(&draws.judged_z),
             at,
-            &self.cfg.loss,
+            &self.cfg.loss_at(at.step),
         )?;
         // Gradients are zeroed before each backward (R1's own gradient never accumulates).
         zero_grads(&self.dvs);
@@ -269,7 +269,8 @@ impl Trainer {
             Some(l) => l,
             None => self.generator_gradients(stage, at)?,
         };
-        let objective = GeneratorObjective::new(&self.cfg.loss, at);
+        let loss_cfg = self.cfg.loss_at(at.step);
+        let objective = GeneratorObjective::new(&loss_cfg, at);
         if objective.coverage_weight() > 0.0 {
             losses = self.add_coverage(&objective, losses, (stage, at.step), real, real_poses.as_ref())?;
         }
@@ -419,7 +420,7 @@ impl Trainer {
                 &draws.fakes.judged_poses,
                 Some(&draws.fakes.judged_z),
                 at,
-                &self.cfg.loss,
+                &self.cfg.loss_at(at.step),
             )?;
             zero_grads(&self.dvs);
             losses.total.backward();
@@ -442,7 +443,7 @@ impl Trainer {
                     (lat, parts),
                     Some(&d.reg_rays),
                     at,
-                    &self.cfg.loss,
+                    &self.cfg.loss_at(at.step),
                 )?;
                 losses.total = losses.total.g_mul_scalar(fault);
                 (&losses.total / split as f64).backward();
@@ -509,7 +510,7 @@ impl Trainer {
         let rc = self.cfg.render_config(at.step);
         let renderer = self.live_renderer(&rc)?;
         let gen = &self.generator;
-        let cfg = &self.cfg.loss;
+        let cfg = &self.cfg.loss_at(at.step);
         let res = stage.resolution;
         let fault = if *inject { f64::NAN } else { 1.0 };
         if stage.regions == 1 {

@@ -430,6 +430,11 @@ impl TrainConfig {
                 return Err(cfg_err(format!("{} is {v}, expected a positive number", key("d_lr"))));
             }
         }
+        if let Some(v) = st.pose_weight {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(cfg_err(format!("{} is {v}, expected 0 (off) or a positive weight", key("pose_weight"))));
+            }
+        }
         Ok(())
     }
 
@@ -465,6 +470,13 @@ impl TrainConfig {
     pub fn learning_rates(&self, step: i64) -> (f64, f64) {
         let st = self.stage(step);
         (st.g_lr.unwrap_or(self.optim.g_lr), st.d_lr.unwrap_or(self.optim.d_lr))
+    }
+
+    /// The losses' settings at `step`: `[loss]` with the stage's `pose_weight` where it
+    /// sets one.
+    pub fn loss_at(&self, step: i64) -> LossConfig {
+        let pose_weight = self.stage(step).pose_weight.unwrap_or(self.loss.pose_weight);
+        LossConfig { pose_weight, ..self.loss.clone() }
     }
 
     /// The render config of the stage at `step` for the training renders. Early
@@ -640,6 +652,16 @@ path = "data/x"
         let e =
             TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "d_lr = 0.0"), Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].d_lr") && e.contains("positive"), "{e}");
+        // A stage's pose weight holds from its first step on, [loss]'s before it; it is never
+        // negative, and a stage without one stores none.
+        let posed = TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "pose_weight = 28.6"), Path::new("")).unwrap();
+        assert_eq!([199, 200].map(|s| posed.loss_at(s).pose_weight), [15.0, 28.6]);
+        assert_eq!(LossConfig { pose_weight: 15.0, ..posed.loss_at(200) }, posed.loss);
+        assert_eq!(posed.to_toml().unwrap().matches("pose_weight").count(), 2);
+        let e = TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "pose_weight = -1.0"), Path::new(""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stages[2].pose_weight"), "{e}");
         let unordered = MIN.replace("from_step = 200", "from_step = 50");
         let e = TrainConfig::from_toml(&unordered, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].from_step"), "{e}");

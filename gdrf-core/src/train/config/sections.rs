@@ -32,6 +32,11 @@ pub struct Stage {
     pub g_lr: Option<f64>,
     #[serde(default)]
     pub d_lr: Option<f64>,
+    /// The pose terms' weight in this stage (default: `[loss] pose_weight`): a stage whose
+    /// patches change the share of the batch the pose terms count (`loss.pose_min_scale`)
+    /// can keep a counted image's weight without changing what earlier steps ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_weight: Option<f64>,
     /// The scaled-patch step (`[stages.patch]`): the generator renders, and the
     /// discriminator judges, one `size²` patch of each `resolution²` image instead of the
     /// whole image, so that a step costs what a `size²` step costs. Absent: whole images.
