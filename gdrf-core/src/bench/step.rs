@@ -534,7 +534,9 @@ const REFRESH: &str = "occupancy refresh";
 fn reference_args(cfg: &TrainConfig, warmup: usize, steps: usize) -> Result<Vec<String>> {
     let st = &cfg.stages[0];
     let (g_lr, d_lr) = cfg.learning_rates(0);
-    let (g, l, o, c) = (&cfg.generator, &cfg.loss, &cfg.optim, &cfg.camera);
+    // The stage's own settings, as the trainer runs it: its learning rates and pose weight.
+    let loss = cfg.loss_at(0);
+    let (g, l, o, c) = (&cfg.generator, &loss, &cfg.optim, &cfg.camera);
     let list = |v: &[String]| v.join(",");
     let variant = serde_json::to_value(l.reg.variant)
         .map_err(|e| Error::Invalid(e.to_string()))?
@@ -611,6 +613,20 @@ mod tests {
         let a = Cli::try_parse_from(argv).unwrap().options;
         let (cfg, _) = step_config(&a, Path::new("unused")).unwrap();
         cfg.stages[0].patch.as_ref().map(|p| p.size)
+    }
+
+    /// The reference runs the benchmarked stage's own pose weight, as the trainer does: the
+    /// campaign's [loss] weight in its stage 2, the weight stage 3 sets there.
+    #[test]
+    fn reference_gets_the_stages_pose_weight() {
+        let config = crate::paths::repo_root().join("configs/chairs-campaign-cpu.toml");
+        let weight = |stage: &str| {
+            let argv = ["gdrf-bench", "--config", config.to_str().unwrap(), "--stage", stage];
+            let (cfg, _) = step_config(&Cli::try_parse_from(argv).unwrap().options, Path::new("unused")).unwrap();
+            let args = reference_args(&cfg, 1, 1).unwrap();
+            args.into_iter().find(|a| a.starts_with("--pose-weight=")).expect("a pose weight")
+        };
+        assert_eq!([weight("2"), weight("3")], ["--pose-weight=54".to_string(), "--pose-weight=28.6".to_string()]);
     }
 
     #[test]
