@@ -58,7 +58,7 @@ shadows = false
 }
 
 fn patch(beta_start: f64, beta_end: f64, anneal_images: i64) -> Option<PatchConfig> {
-    Some(PatchConfig { size: 8, beta_start, beta_end, anneal_images })
+    Some(PatchConfig { size: 8, beta_start, beta_end, anneal_images, native_share: 0.0 })
 }
 
 /// The discriminator is shown the real images resampled at the step's patches: at β → 0
@@ -181,12 +181,24 @@ fn bad_patch_settings_are_named() {
         (PatchConfig { size: 8, beta_start: 0.0, ..Default::default() }, "stages[1].patch.beta_start is 0"),
         (PatchConfig { size: 8, beta_end: f64::NAN, ..Default::default() }, "stages[1].patch.beta_end"),
         (PatchConfig { size: 8, anneal_images: -1, ..Default::default() }, "stages[1].patch.anneal_images is -1"),
+        (PatchConfig { size: 8, native_share: 1.0, ..Default::default() }, "stages[1].patch.native_share is 1"),
+        (PatchConfig { size: 8, native_share: -0.1, ..Default::default() }, "stages[1].patch.native_share is -0.1"),
     ] {
         cfg.stages[1].patch = Some(p);
         let e = cfg.validate().unwrap_err().to_string();
         assert!(e.contains(key), "{e}");
     }
+    // A native share is written where set and only there, so that the configs stored with
+    // earlier runs write back unchanged.
     cfg.stages[1].patch = patch(0.1, 0.8, 10);
+    cfg.validate().unwrap();
+    assert!(!cfg.to_toml().unwrap().contains("native_share"));
+    cfg.stages[1].patch.as_mut().unwrap().native_share = 0.25;
+    cfg.validate().unwrap();
+    let text = cfg.to_toml().unwrap();
+    assert!(text.contains("native_share = 0.25"), "{text}");
+    let back = TrainConfig::from_toml(&text, &dir.0).unwrap();
+    assert_eq!(back.stages[1].patch.as_ref().unwrap().native_share, 0.25);
     cfg.discriminator.kind = gdrf_core::disc::DiscKind::Projected;
     let e = cfg.validate().unwrap_err().to_string();
     assert!(e.contains("stages[1].patch") && e.contains("\"projected\""), "{e}");

@@ -81,10 +81,12 @@ pub(super) fn shared_classes(b: i64, group: i64, pairs: bool) -> Vec<usize> {
         .collect()
 }
 
-/// A patch of scale P/R + (1 − P/R)·x, x ~ Beta(1, β) by its inverse CDF 1 − (1 − u)^{1/β},
-/// at the offset fractions `(v, w)` of the room left, from uniforms `u, v, w` ∈ [0, 1).
-pub(super) fn draw_patch(min_scale: f64, beta: f64, [u, v, w]: [f64; 3]) -> Patch {
-    let x = 1.0 - (1.0 - u).powf(1.0 / beta);
+/// A patch of scale P/R + (1 − P/R)·x at the offset fractions `(v, w)` of the room left, from
+/// uniforms `u, v, w` ∈ [0, 1): x = 0 (native resolution) where u < `native`, else
+/// x ~ Beta(1, β) by its inverse CDF 1 − (1 − u′)^{1/β} of u′ = (u − native) / (1 − native),
+/// which is u itself, bit for bit, at `native` = 0.
+pub(super) fn draw_patch(min_scale: f64, beta: f64, native: f64, [u, v, w]: [f64; 3]) -> Patch {
+    let x = if u < native { 0.0 } else { 1.0 - (1.0 - (u - native) / (1.0 - native)).powf(1.0 / beta) };
     let scale = (min_scale + (1.0 - min_scale) * x).clamp(min_scale, 1.0);
     Patch { scale, offset: ((1.0 - scale) * v, (1.0 - scale) * w) }
 }
@@ -120,7 +122,7 @@ impl Trainer {
         let u: Vec<f32> = Vec::try_from(self.rng(step, Purpose::Patches).uniform(&[n, 3]).reshape([-1])).ok()?;
         let (min_scale, beta) = (p.size as f64 / r as f64, self.patch_beta(step));
         let drawn: Vec<Patch> =
-            u.chunks(3).map(|c| draw_patch(min_scale, beta, [c[0] as f64, c[1] as f64, c[2] as f64])).collect();
+            u.chunks(3).map(|c| draw_patch(min_scale, beta, p.native_share, [c[0] as f64, c[1] as f64, c[2] as f64])).collect();
         Some(StepPatches { size: p.size, of: r, all: class.iter().map(|&c| drawn[c]).collect() })
     }
 
@@ -216,19 +218,48 @@ mod tests {
     #[test]
     fn scales_follow_the_annealed_beta() {
         // u = 0 gives the smallest scale, offsets span the room left exactly.
-        let p = draw_patch(0.5, 0.8, [0.0, 1.0, 0.0]);
+        let p = draw_patch(0.5, 0.8, 0.0, [0.0, 1.0, 0.0]);
         assert_eq!(p, Patch { scale: 0.5, offset: (0.5, 0.0) });
         // Beta(1, 1) is uniform: x = u.
-        let p = draw_patch(0.25, 1.0, [0.5, 0.5, 0.5]);
+        let p = draw_patch(0.25, 1.0, 0.0, [0.5, 0.5, 0.5]);
         assert!((p.scale - 0.625).abs() < 1e-15 && (p.offset.0 - 0.1875).abs() < 1e-15);
         // β = 0.001: (1 − 0.9)^1000 rounds to 0, a whole image.
-        assert_eq!(draw_patch(0.5, 0.001, [0.9, 0.3, 0.3]).scale, 1.0);
+        assert_eq!(draw_patch(0.5, 0.001, 0.0, [0.9, 0.3, 0.3]).scale, 1.0);
         // The inverse CDF: P(x ≤ t) = 1 − (1 − t)^β; its median at β = 0.8 is 1 − ½^{1/0.8}.
-        let m = draw_patch(0.0, 0.8, [0.5, 0.0, 0.0]).scale;
+        let m = draw_patch(0.0, 0.8, 0.0, [0.5, 0.0, 0.0]).scale;
         assert!((m - (1.0 - 0.5f64.powf(1.25))).abs() < 1e-15);
         for u in [0.0, 0.3, 0.999_999] {
-            let p = draw_patch(0.5, 0.8, [u, 0.999_999, 0.999_999]);
+            let p = draw_patch(0.5, 0.8, 0.0, [u, 0.999_999, 0.999_999]);
             p.check(32, 64).unwrap();
         }
+    }
+
+    #[test]
+    fn a_native_share_mixes_in_native_patches_and_rescales_the_rest() {
+        // Below the share: native resolution, offsets as before.
+        assert_eq!(draw_patch(0.5, 0.2, 0.25, [0.1, 0.5, 1.0]), Patch { scale: 0.5, offset: (0.25, 0.5) });
+        assert_eq!(draw_patch(0.5, 0.2, 0.25, [0.0, 0.0, 0.0]).scale, 0.5);
+        // Above it, u′ = (u − q) / (1 − q): u = 0.625 at q = 0.25 is u′ = 0.5, the median
+        // 1 − ½^{1/β} of Beta(1, β).
+        let m = draw_patch(0.0, 0.8, 0.25, [0.625, 0.0, 0.0]).scale;
+        assert!((m - (1.0 - 0.5f64.powf(1.25))).abs() < 1e-15, "{m}");
+        // At the share itself u′ = 0: the smallest Beta scale, still native.
+        assert_eq!(draw_patch(0.5, 0.8, 0.25, [0.25, 0.0, 0.0]).scale, 0.5);
+        // A share of 0 draws exactly what EpiGRAF's law alone draws (the committed runs).
+        for u in [0.0f64, 0.123_456_789, 0.5, 0.987_654_321, 0.999_999] {
+            let x = 1.0 - (1.0 - u).powf(1.0 / 0.4);
+            let want = (0.5 + 0.5 * x).clamp(0.5, 1.0);
+            assert_eq!(draw_patch(0.5, 0.4, 0.0, [u, 0.3, 0.7]).scale.to_bits(), want.to_bits());
+        }
+        // Over many uniforms the native share and the Beta law's tail come out as designed:
+        // P(s ≤ 0.6) = q + (1 − q)(1 − 0.8^β), P(s ≥ 0.9) = (1 − q)·0.2^β.
+        let (q, beta, n) = (0.25, 0.2, 100_000);
+        let scales: Vec<f64> =
+            (0..n).map(|i| draw_patch(0.5, beta, q, [(i as f64 + 0.5) / n as f64, 0.0, 0.0]).scale).collect();
+        let share = |f: &dyn Fn(f64) -> bool| scales.iter().filter(|s| f(**s)).count() as f64 / n as f64;
+        let small = q + (1.0 - q) * (1.0 - 0.8f64.powf(beta));
+        let whole = (1.0 - q) * 0.2f64.powf(beta);
+        assert!((share(&|s| s <= 0.6) - small).abs() < 1e-4, "{}", share(&|s| s <= 0.6));
+        assert!((share(&|s| s >= 0.9) - whole).abs() < 1e-4, "{}", share(&|s| s >= 0.9));
     }
 }

@@ -335,6 +335,8 @@ impl TrainConfig {
             require(v > 0.0 && v.is_finite(), &format!("{key}.{k}"), v, "a positive number")?;
         }
         require(p.anneal_images >= 0, &format!("{key}.anneal_images"), p.anneal_images, "0 or more")?;
+        let q = p.native_share;
+        require((0.0..1.0).contains(&q), &format!("{key}.native_share"), q, "a share in [0, 1)")?;
         if st.regions != 1 {
             return Err(cfg_err(format!(
                 "{key} renders one patch per image, but the stage's regions is {}: expected 1",

@@ -59,6 +59,10 @@ impl Stage {
 /// Beta(1, 0.001) is almost always 1 (whole images, resized to P²), so training starts from
 /// what the P² stage learned and drifts toward native-resolution crops (mean s at β = 0.8
 /// and P/R = ½: 0.78).
+///
+/// `native_share` (not EpiGRAF's) mixes in native-resolution patches (s = P/R): that share
+/// of the draws is native, the rest follow the Beta law. A small β shows whole chairs, which
+/// the pose terms need, but few patches at R's own detail; the mixture gives both.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct PatchConfig {
@@ -68,13 +72,21 @@ pub struct PatchConfig {
     pub beta_end: f64,
     /// Images over which β anneals (0: `beta_end` from the start).
     pub anneal_images: i64,
+    /// Share of patches drawn at scale P/R, in [0, 1) (0: EpiGRAF's law alone). Written
+    /// only where set, so configs from before it read and write back unchanged.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub native_share: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Default for PatchConfig {
     fn default() -> Self {
         // EpiGRAF anneals over 10 000 kimg from scratch; a generator that already learned at
         // P² starts from whole images it knows, and a CPU sees ~1 M images a day.
-        Self { size: 32, beta_start: 0.001, beta_end: 0.8, anneal_images: 200_000 }
+        Self { size: 32, beta_start: 0.001, beta_end: 0.8, anneal_images: 200_000, native_share: 0.0 }
     }
 }
 
