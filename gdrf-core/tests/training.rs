@@ -477,7 +477,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8], vec![32, 32, 32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8, 8], vec![32, 32, 32, 32, 32]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -518,6 +518,17 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let counted = |beta: f64| (1.0 - x).powf(beta);
     assert!((counted(0.8) - 0.276).abs() < 5e-4, "{}", counted(0.8));
     assert!((counted(0.4) - 0.525).abs() < 5e-4, "{}", counted(0.4));
+    // From step 237 092 a quarter of the patches are native (never counted), the rest as
+    // before: 38.1 = 15 / (0.75 · counted(0.4)).
+    let mut native = cpu.stages[4].clone();
+    assert_eq!((native.from_step, native.pose_weight), (237_092, Some(38.1)));
+    let n = native.patch.as_mut().expect("the native share");
+    assert_eq!((n.beta_end, n.native_share), (0.4, 0.25));
+    assert!((15.0 / (0.75 * counted(0.4)) - 38.1).abs() < 0.05);
+    n.native_share = 0.0;
+    (native.from_step, native.pose_weight) = (cpu.stages[3].from_step, cpu.stages[3].pose_weight);
+    assert_eq!(native, cpu.stages[3]);
+    assert_eq!([237_091, 237_092].map(|s| cpu.loss_at(s).pose_weight), [28.6, 38.1]);
     for (step, beta, tolerance) in [(230_456, 0.8, 0.5), (230_457, 0.4, 0.05)] {
         let w = cpu.loss_at(step).pose_weight;
         assert!((15.0 / counted(beta) - w).abs() < tolerance, "step {step}: {w}");
