@@ -13,10 +13,10 @@
 use gdrf_core::camera::Poses;
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::data::Split;
+use gdrf_core::eval::evaluator::render_codes;
 use gdrf_core::eval::metrics::through_resolution;
 use gdrf_core::eval::probe::{load_labelled, Probe};
 use gdrf_core::pretrained::effnet::EfficientNetLite0;
-use gdrf_core::render::{Noise, Renderer};
 use gdrf_core::rng::{Purpose, RandomSource, StepRng};
 use gdrf_core::RenderConfig;
 use std::path::Path;
@@ -36,7 +36,8 @@ fn pitch_errors(probe: &Probe, effnet: &EfficientNetLite0, x: &Tensor, truth: &T
     for chunk in x.split(64, 0) {
         preds.push(tch::no_grad(|| probe.predict(Some(effnet), &chunk))?.poses.select(1, 0));
     }
-    let d = (Tensor::cat(&preds, 0).to_kind(Kind::Double) - truth.to_kind(Kind::Double)) * (180.0 / std::f64::consts::PI);
+    let d =
+        (Tensor::cat(&preds, 0).to_kind(Kind::Double) - truth.to_kind(Kind::Double)) * (180.0 / std::f64::consts::PI);
     Ok((f64::try_from(d.mean(Kind::Double))?, f64::try_from(d.abs().mean(Kind::Double))?))
 }
 
@@ -72,21 +73,8 @@ fn main() -> anyhow::Result<()> {
     let z = StepRng::new(100, 0, Purpose::EvalCodes, Kind::Float, device).normal(&[num, g.cfg.latent_dim as i64]);
     let poses = Poses::sample_from(&cam, num, &mut StepRng::new(100, 0, Purpose::EvalPoses, Kind::Float, device));
     let rc = RenderConfig { num_steps: samples, jitter: false, ..RenderConfig::default() };
-    let renderer = Renderer::new(g, &cam, &rc)?;
     let render = |res: i64| -> anyhow::Result<Tensor> {
-        let mut out = Vec::new();
-        let mut i = 0;
-        while i < num {
-            let b = 16.min(num - i);
-            let lat = tch::no_grad(|| g.latents(&z.narrow(0, i, b), &z.narrow(0, i, b), None))?;
-            let p = Poses { pitch: poses.pitch.narrow(0, i, b), yaw: poses.yaw.narrow(0, i, b) };
-            let nz = Noise::midpoints(b, res * res, samples as i64, device);
-            out.push(tch::no_grad(|| renderer.render_image(&lat, &p, res, &nz))?.rgb);
-            i += b;
-            eprint!("\rrendering {res}²: {i}/{num}");
-        }
-        eprintln!();
-        Ok(Tensor::cat(&out, 0))
+        Ok(render_codes((g, None), &cam, &rc, (&z, &z), &poses, res, &mut |_| {})?)
     };
     let gen_pitch = poses.pitch.shallow_clone();
     let plain = render(64)?;

@@ -87,7 +87,7 @@ impl Default for EvalOptions {
 /// Renders `z` at `poses` (batches of 16, no jitter, importance samples at the midpoints:
 /// no random numbers) with `g`, its codes truncated by `trunc` when given. `codes`: shape
 /// and appearance codes `(N, latent)` each.
-fn render_codes(
+pub fn render_codes(
     (g, trunc): (&Generator, Option<&Truncation>),
     cam: &CameraConfig,
     rc: &RenderConfig,

@@ -121,8 +121,10 @@ impl Trainer {
         let n = class.iter().max().map_or(0, |m| m + 1) as i64;
         let u: Vec<f32> = Vec::try_from(self.rng(step, Purpose::Patches).uniform(&[n, 3]).reshape([-1])).ok()?;
         let (min_scale, beta) = (p.size as f64 / r as f64, self.patch_beta(step));
-        let drawn: Vec<Patch> =
-            u.chunks(3).map(|c| draw_patch(min_scale, beta, p.native_share, [c[0] as f64, c[1] as f64, c[2] as f64])).collect();
+        let drawn: Vec<Patch> = u
+            .chunks(3)
+            .map(|c| draw_patch(min_scale, beta, p.native_share, [c[0] as f64, c[1] as f64, c[2] as f64]))
+            .collect();
         Some(StepPatches { size: p.size, of: r, all: class.iter().map(|&c| drawn[c]).collect() })
     }
 
