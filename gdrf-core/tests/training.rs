@@ -467,8 +467,9 @@ fn every_shipped_config_loads_and_validates() {
 /// all four stages: step 0's, from step 140 231 the same at a quarter of the learning
 /// rates, from step 205 046 the same at 64² on the scaled-patch step (32² patches, whose
 /// discriminator input, what the 32² stages trained, fades nothing in), with the curve
-/// evaluated at 64², and from step 230 457 the same with larger patches; the pose terms on
-/// whole-chair patches at the weight that makes up for their count.
+/// evaluated at 64², and from step 227 393 the same with larger patches, a quarter of them
+/// at native resolution; the pose terms on whole-chair patches at the weight that makes up
+/// for their count.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -477,7 +478,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8, 8], vec![32, 32, 32, 32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8], vec![32, 32, 32, 32]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -497,41 +498,31 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_and_batch_only(
     assert_eq!(cpu.switch_step(205_046), None);
     assert_eq!([cpu.alpha(205_045), cpu.alpha(205_046), cpu.alpha(215_046)], [1.0, 1.0, 1.0]);
     assert_eq!((cpu.eval.resolution, cpu.eval.swap), (64, 16));
-    // From step 230 457 only the patches' final β (0.8 to 0.4) and the pose weight change:
-    // nothing fades in.
-    let mut larger = cpu.stages[3].clone();
-    assert_eq!((larger.from_step, larger.pose_weight), (230_457, Some(28.6)));
-    let q = larger.patch.as_mut().expect("the larger patches");
-    assert_eq!(q.beta_end, 0.4);
-    q.beta_end = p.beta_end;
-    (larger.from_step, larger.pose_weight) = (cpu.stages[2].from_step, None);
-    assert_eq!(larger, cpu.stages[2]);
-    assert_eq!((cpu.switch_step(230_457), cpu.alpha(230_457)), (None, 1.0));
+    // From step 227 393 only the patches change (final β 0.8 to 0.4, a quarter of them at
+    // native resolution) and the pose weight: nothing fades in.
+    let mut native = cpu.stages[3].clone();
+    assert_eq!((native.from_step, native.pose_weight), (227_393, Some(38.1)));
+    let n = native.patch.as_mut().expect("the larger patches with a native share");
+    assert_eq!((n.beta_end, n.native_share), (0.4, 0.25));
+    (n.beta_end, n.native_share) = (p.beta_end, 0.0);
+    (native.from_step, native.pose_weight) = (cpu.stages[2].from_step, None);
+    assert_eq!(native, cpu.stages[2]);
+    assert_eq!((cpu.switch_step(227_393), cpu.alpha(227_393)), (None, 1.0));
     // From step 215 145 the pose terms count only patches of at least 0.9 of the side; their
-    // weight is 15 over the chance that a patch is counted at the final β (scale
-    // P/R + (1 − P/R)·x, x ~ Beta(1, β)), so a counted patch weighs what a 32² image did:
-    // 54 at β 0.8 (from step 226 201), 28.6 at β 0.4 (from step 230 457).
+    // weight is 15 over the share of patches counted at the final β (scale
+    // P/R + (1 − P/R)·x, x ~ Beta(1, β); native patches never count), so a counted patch
+    // weighs what a 32² image did: 54 at β 0.8 (from step 226 201), 38.1 at β 0.4 with a
+    // quarter native (from step 227 393).
     assert_eq!(cpu.loss.pose_min_scale, 0.9);
-    assert_eq!([226_201, 230_456, 230_457].map(|s| cpu.loss_at(s).pose_weight), [54.0, 54.0, 28.6]);
+    assert_eq!([226_201, 227_392, 227_393].map(|s| cpu.loss_at(s).pose_weight), [54.0, 54.0, 38.1]);
     let min_scale = p.size as f64 / 64.0;
     let x = (cpu.loss.pose_min_scale - min_scale) / (1.0 - min_scale);
     let counted = |beta: f64| (1.0 - x).powf(beta);
     assert!((counted(0.8) - 0.276).abs() < 5e-4, "{}", counted(0.8));
     assert!((counted(0.4) - 0.525).abs() < 5e-4, "{}", counted(0.4));
-    // From step 237 092 a quarter of the patches are native (never counted), the rest as
-    // before: 38.1 = 15 / (0.75 · counted(0.4)).
-    let mut native = cpu.stages[4].clone();
-    assert_eq!((native.from_step, native.pose_weight), (237_092, Some(38.1)));
-    let n = native.patch.as_mut().expect("the native share");
-    assert_eq!((n.beta_end, n.native_share), (0.4, 0.25));
-    assert!((15.0 / (0.75 * counted(0.4)) - 38.1).abs() < 0.05);
-    n.native_share = 0.0;
-    (native.from_step, native.pose_weight) = (cpu.stages[3].from_step, cpu.stages[3].pose_weight);
-    assert_eq!(native, cpu.stages[3]);
-    assert_eq!([237_091, 237_092].map(|s| cpu.loss_at(s).pose_weight), [28.6, 38.1]);
-    for (step, beta, tolerance) in [(230_456, 0.8, 0.5), (230_457, 0.4, 0.05)] {
+    for (step, share, tolerance) in [(227_392, counted(0.8), 0.5), (227_393, 0.75 * counted(0.4), 0.05)] {
         let w = cpu.loss_at(step).pose_weight;
-        assert!((15.0 / counted(beta) - w).abs() < tolerance, "step {step}: {w}");
+        assert!((15.0 / share - w).abs() < tolerance, "step {step}: {w}");
     }
     gpu.precision = cpu.precision;
     for (g, c) in gpu.stages.iter_mut().zip(&cpu.stages) {
