@@ -626,7 +626,7 @@ mod tests {
             let args = reference_args(&cfg, 1, 1).unwrap();
             args.into_iter().find(|a| a.starts_with("--pose-weight=")).expect("a pose weight")
         };
-        assert_eq!([weight("2"), weight("3")], ["--pose-weight=54".to_string(), "--pose-weight=28.6".to_string()]);
+        assert_eq!([weight("2"), weight("3")], ["--pose-weight=54".to_string(), "--pose-weight=38.1".to_string()]);
     }
 
     #[test]
