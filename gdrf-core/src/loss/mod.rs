@@ -11,6 +11,7 @@ pub mod coverage;
 pub mod deform_reg;
 pub mod gan;
 mod objective;
+pub mod opacity;
 
 use crate::disc::DiscOutput;
 use crate::error::require;
@@ -82,7 +83,22 @@ pub struct LossConfig {
     /// The adversarial loss: `"logistic"` (the release's non-saturating logistic loss) or
     /// `"hinge"` (the projected GAN's).
     pub adversarial: gan::Adversarial,
+    /// Weight of the opacity term (0 = off, the release): the mean binary entropy of each
+    /// generated ray's opacity, the share of its pixel the object covers
+    /// ([`opacity::opacity_entropy`]). One ray through each pixel's centre cannot antialias a
+    /// silhouette as the real images are antialiased, so the adversarial loss alone rewards
+    /// a fringe of low density that softens the edge; the term asks each ray to be object or
+    /// background (docs/campaign-log.md, "The curve at 64²"). Whole-image and scaled-patch
+    /// steps only (not the two-pass `regions` step).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub opacity_weight: f64,
     pub reg: RegConfig,
+}
+
+/// A weight left at 0 is not written, so that configs and checkpoints from before the key
+/// keep their bytes.
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Default for LossConfig {
@@ -106,6 +122,7 @@ impl Default for LossConfig {
             topk_interval: 2000.0,
             topk_floor: 0.6,
             adversarial: gan::Adversarial::Logistic,
+            opacity_weight: 0.0,
             reg: RegConfig::default(),
         }
     }
@@ -130,6 +147,12 @@ impl LossConfig {
             self.coverage_weight >= 0.0 && self.coverage_weight.is_finite(),
             "loss.coverage_weight",
             self.coverage_weight,
+            "0 (off) or a positive weight",
+        )?;
+        require(
+            self.opacity_weight >= 0.0 && self.opacity_weight.is_finite(),
+            "loss.opacity_weight",
+            self.opacity_weight,
             "0 (off) or a positive weight",
         )?;
         require(self.coverage_candidates >= 1, "loss.coverage_candidates", self.coverage_candidates, "at least 1")?;

@@ -1,11 +1,12 @@
 //! The generator's objective: every term of its loss, with its weight and schedule, in one
 //! place (EG3D's `training/loss.py`, where one loss object owns every term). A new term is
-//! its function (in `gan`, `deform_reg` or a file of its own), its weight in
+//! its function (in `gan`, `deform_reg` or a file of its own, as `opacity`), its weight in
 //! [`LossConfig`], and a line in the method below that adds it.
 // `t = t + x` on purpose: `+=` on a Tensor is an in-place add on a tensor autograd saved.
 #![allow(clippy::assign_op_pattern)]
 use super::coverage::{coverage_gradients, CoverageDraws};
 use super::deform_reg::RegTerms;
+use super::opacity::opacity_entropy;
 use super::{gan, LossConfig, Losses, Schedule};
 use crate::disc::DiscOutput;
 use crate::render::Renderer;
@@ -103,6 +104,23 @@ impl<'a> GeneratorObjective<'a> {
     ) -> Result<Losses> {
         let reg = self.regularisation(reg);
         Ok(self.image_terms(fake, img, poses, z)?.merge(reg))
+    }
+
+    /// Adds the opacity term to `others` when its weight is not 0: the mean binary entropy
+    /// of the rendered rays' opacities `alpha()` (any shape, in [0, 1]; the object's share
+    /// of each pixel, [`opacity_entropy`]), weighted into the total, unweighted in the
+    /// breakdown as `g_opacity`. At weight 0 nothing is computed and `others` is returned
+    /// as it is.
+    pub fn add_opacity(&self, others: Losses, alpha: impl FnOnce() -> Tensor) -> Losses {
+        let weight = self.cfg.opacity_weight;
+        if weight == 0.0 {
+            return others;
+        }
+        let h = opacity_entropy(&alpha());
+        let Losses { total, mut terms } = others;
+        let total = &total + &h * weight;
+        terms.push(("g_opacity", h));
+        Losses { total, terms }
     }
 
     /// The coverage term's weight at this step ([`LossConfig::coverage_at`]); 0: the term is

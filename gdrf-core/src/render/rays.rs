@@ -81,6 +81,14 @@ pub struct RenderedRays {
 }
 
 impl RenderedRays {
+    /// `(B, R, 1)` the share of each ray's light that the object gives, Σ_{i<S} w_i: the
+    /// weights of every sample but the last, which lies at the far bound with an unbounded
+    /// interval and stands for the background (painted by the generator or composited).
+    pub fn object_share(&self) -> Tensor {
+        let s = self.weights.size()[2];
+        self.weights.narrow(2, 0, s - 1).sum_dim_intlist(2, false, self.weights.kind())
+    }
+
     /// `(B, R, S, 3)` world-space sample points.
     pub fn points(&self) -> Tensor {
         self.origins.unsqueeze(2) + self.dirs.unsqueeze(2) * self.z.unsqueeze(-1)

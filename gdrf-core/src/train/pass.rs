@@ -49,8 +49,9 @@ pub struct Judged<'a> {
 }
 
 /// The generator's loss on images already rendered with their graph: `disc`'s verdict on
-/// `judged` and the image terms, and the regularisers through `generator` on `own`, the
-/// latents and the rays (`parts`) of the images this process rendered.
+/// `judged` and the image terms, the regularisers through `generator` on `own`, the
+/// latents and the rays (`parts`) of the images this process rendered, and the opacity
+/// term on those rays where its weight is not 0.
 pub fn generator_judgement(
     generator: &Generator,
     disc: &dyn Judge,
@@ -63,7 +64,10 @@ pub fn generator_judgement(
     let d = disc.judge(judged.img, at.alpha)?;
     let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
     let reg = regularisers(generator, &latents.shape, &samples, cfg.reg.variant);
-    GeneratorObjective::new(cfg, at).main(&d, judged.img, &judged.poses.stacked(), judged.z, reg)
+    let objective = GeneratorObjective::new(cfg, at);
+    let losses = objective.main(&d, judged.img, &judged.poses.stacked(), judged.z, reg)?;
+    Ok(objective
+        .add_opacity(losses, || Tensor::cat(&parts.iter().map(RenderedRays::object_share).collect::<Vec<_>>(), 1)))
 }
 
 /// The discriminator's loss: fakes rendered without gradients, then
@@ -158,4 +162,80 @@ pub fn patch_gradients(
     let reg = objective.regularisation(regularisers(gen, &lat.shape, &samples, cfg.reg.variant));
     (&reg.total / split).backward();
     Ok(adv.merge(reg))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::disc::Discriminator;
+    use crate::loss::opacity::opacity_entropy;
+    use crate::render::background_share;
+    use crate::{Background, CameraConfig, GeneratorConfig, RenderConfig};
+    use tch::{nn, Device};
+
+    /// The opacity term through the generator's pass: absent at weight 0; at a weight, the
+    /// mean binary entropy of each rendered ray's object share, added to the total at that
+    /// weight, with a gradient that reaches the generator. Both ways the background can
+    /// show: painted by the generator at the last sample (the release), and composited on
+    /// colours, where the object's share is one minus the compositor's background share.
+    #[test]
+    fn opacity_term_is_the_entropy_of_the_rays_object_share() {
+        for background in [Background::Learned, Background::Corners] {
+            let vs = nn::VarStore::new(Device::Cpu);
+            let gcfg = GeneratorConfig { hidden_dim: 32, background, ..GeneratorConfig::tiny() };
+            let g = crate::rng::with_global_seed(3, || Generator::new(&vs.root(), &gcfg).unwrap());
+            let dvs = nn::VarStore::new(Device::Cpu);
+            let d = crate::rng::with_global_seed(4, || Discriminator::new(&dvs.root()));
+            let cam = CameraConfig::chair();
+            let rc = RenderConfig { num_steps: 8, ..Default::default() };
+            let r = Renderer::new(&g, &cam, &rc).unwrap();
+            let (b, res, n) = (2i64, 8i64, 8i64);
+            let cpu = (Kind::Float, Device::Cpu);
+            let draw = |seed| crate::rng::with_global_seed(seed, || Tensor::rand([b, res * res, n], cpu));
+            let noise = Noise { jitter: Some(draw(5)), importance: Some(draw(6)) };
+            let z = crate::rng::with_global_seed(7, || Tensor::randn([b, gcfg.latent_dim as i64], cpu));
+            let poses = Poses::from_angles(&[(1.0, 0.5), (1.2, -2.5)], Kind::Float, Device::Cpu);
+            let at = Schedule { step: 0, alpha: 1.0 };
+            let pass = |weight: f64| {
+                let lat = g.latents(&z, &z, None).unwrap();
+                let fake =
+                    FakeBatch { latents: &lat, poses: &poses, z: None, resolution: res, regions: 1, noise: &noise };
+                let cfg = LossConfig { opacity_weight: weight, ..Default::default() };
+                generator_pass(&r, &d, &fake, None, at, &cfg).unwrap()
+            };
+            let off = pass(0.0);
+            assert!(off.get("g_opacity").is_none(), "{background:?}: the term is computed at weight 0");
+            let weight = 0.7;
+            let on = pass(weight);
+            let h = on.get("g_opacity").expect("the opacity term at weight 0.7").double_value(&[]);
+            // The same rays rendered again: every sample's weight but the last's.
+            let lat = g.latents(&z, &z, None).unwrap();
+            let (_, parts) = tch::no_grad(|| r.render_regions(&lat, &poses, res, 1, &noise)).unwrap();
+            let w = &parts[0].weights;
+            assert_eq!(w.size(), [b, res * res, 2 * n, 1]);
+            let share = w.narrow(2, 0, 2 * n - 1).sum_dim_intlist(2, false, Kind::Float);
+            if background == Background::Corners {
+                // Composited on colours: the compositor's own background share is the rest.
+                let o = r.composite_options();
+                let back = background_share(w, &parts[0].opacity, &o);
+                let gap = f64::try_from((&share + &back - 1.0).abs().max()).unwrap();
+                assert!(gap < 1e-6, "object share + background share − 1 reaches {gap}");
+            }
+            let want = opacity_entropy(&share).double_value(&[]);
+            assert!((h - want).abs() <= 1e-7 + 1e-6 * want, "{background:?}: g_opacity {h}, the rays' entropy {want}");
+            assert!(h > 1e-3 && h < std::f64::consts::LN_2, "{background:?}: {h}");
+            let (t_on, t_off) = (on.total.double_value(&[]), off.total.double_value(&[]));
+            assert!(
+                (t_on - t_off - weight * h).abs() <= 1e-5 * (1.0 + t_off.abs()),
+                "{background:?}: total {t_on} against {t_off} + {weight}·{h}"
+            );
+            // Its gradient alone reaches the generator.
+            on.get("g_opacity").unwrap().backward();
+            let reached = vs.trainable_variables().iter().any(|v| {
+                let gr = v.grad();
+                gr.defined() && f64::try_from(gr.abs().sum(Kind::Double)).unwrap() > 0.0
+            });
+            assert!(reached, "{background:?}: no gradient from the opacity term");
+        }
+    }
 }

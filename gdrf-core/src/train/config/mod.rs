@@ -437,6 +437,24 @@ impl TrainConfig {
                 return Err(cfg_err(format!("{} is {v}, expected 0 (off) or a positive weight", key("pose_weight"))));
             }
         }
+        if let Some(v) = st.opacity_weight {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(cfg_err(format!(
+                    "{} is {v}, expected 0 (off) or a positive weight",
+                    key("opacity_weight")
+                )));
+            }
+        }
+        // The two-pass `regions` step differentiates the image, then each band's colours:
+        // the opacity term has no place in it.
+        if st.regions > 1 && st.opacity_weight.unwrap_or(self.loss.opacity_weight) > 0.0 {
+            return Err(cfg_err(format!(
+                "{} is {} with the opacity term on (loss.opacity_weight or {}); the term needs whole-image or scaled-patch steps (regions = 1)",
+                key("regions"),
+                st.regions,
+                key("opacity_weight")
+            )));
+        }
         Ok(())
     }
 
@@ -474,11 +492,13 @@ impl TrainConfig {
         (st.g_lr.unwrap_or(self.optim.g_lr), st.d_lr.unwrap_or(self.optim.d_lr))
     }
 
-    /// The losses' settings at `step`: `[loss]` with the stage's `pose_weight` where it
-    /// sets one.
+    /// The losses' settings at `step`: `[loss]` with the stage's `pose_weight` and
+    /// `opacity_weight` where it sets them.
     pub fn loss_at(&self, step: i64) -> LossConfig {
-        let pose_weight = self.stage(step).pose_weight.unwrap_or(self.loss.pose_weight);
-        LossConfig { pose_weight, ..self.loss.clone() }
+        let st = self.stage(step);
+        let pose_weight = st.pose_weight.unwrap_or(self.loss.pose_weight);
+        let opacity_weight = st.opacity_weight.unwrap_or(self.loss.opacity_weight);
+        LossConfig { pose_weight, opacity_weight, ..self.loss.clone() }
     }
 
     /// The render config of the stage at `step` for the training renders. Early
@@ -664,6 +684,26 @@ path = "data/x"
             .unwrap_err()
             .to_string();
         assert!(e.contains("stages[2].pose_weight"), "{e}");
+        // The opacity term's weight likewise: [loss]'s (0, not written), a stage's from its
+        // first step on; never negative; refused with the two-pass `regions` step.
+        let opaque =
+            TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "opacity_weight = 0.5"), Path::new("")).unwrap();
+        assert_eq!([199, 200].map(|s| opaque.loss_at(s).opacity_weight), [0.0, 0.5]);
+        assert_eq!(opaque.to_toml().unwrap().matches("opacity_weight").count(), 1);
+        assert_eq!(posed.to_toml().unwrap().matches("opacity_weight").count(), 0);
+        let everywhere = parse("[loss]\nopacity_weight = 0.25").unwrap();
+        assert_eq!([0, 200].map(|s| everywhere.loss_at(s).opacity_weight), [0.25, 0.25]);
+        assert_eq!(everywhere.to_toml().unwrap().matches("opacity_weight").count(), 1);
+        let e = parse("[loss]\nopacity_weight = -0.5").unwrap_err().to_string();
+        assert!(e.contains("loss.opacity_weight") && e.contains("-0.5"), "{e}");
+        let e = TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "opacity_weight = -1.0"), Path::new(""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stages[2].opacity_weight"), "{e}");
+        TrainConfig::from_toml(&MIN.replace("g_lr = 1e-4", "regions = 2"), Path::new("")).unwrap();
+        let banded = MIN.replace("g_lr = 1e-4", "regions = 2\nopacity_weight = 0.5");
+        let e = TrainConfig::from_toml(&banded, Path::new("")).unwrap_err().to_string();
+        assert!(e.contains("stages[2].regions") && e.contains("stages[2].opacity_weight"), "{e}");
         let unordered = MIN.replace("from_step = 200", "from_step = 50");
         let e = TrainConfig::from_toml(&unordered, Path::new("")).unwrap_err().to_string();
         assert!(e.contains("stages[2].from_step"), "{e}");

@@ -37,6 +37,10 @@ pub struct Stage {
     /// can keep a counted image's weight without changing what earlier steps ran.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_weight: Option<f64>,
+    /// The opacity term's weight in this stage (default: `[loss] opacity_weight`), so that a
+    /// run can take it up from a stage on without changing what earlier steps ran.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub opacity_weight: Option<f64>,
     /// The scaled-patch step (`[stages.patch]`): the generator renders, and the
     /// discriminator judges, one `size²` patch of each `resolution²` image instead of the
     /// whole image, so that a step costs what a `size²` step costs. Absent: whole images.
