@@ -465,11 +465,11 @@ fn every_shipped_config_loads_and_validates() {
 /// The campaign's two continuation configs hold the same keys but for the GPU's float32
 /// (the CPU's "auto": bfloat16 where the CPU has bfloat16 instructions), the CPU's one
 /// thread, and batch 32, in
-/// all four stages: step 0's, from step 140 231 the same at a quarter of the learning
+/// all five stages: step 0's, from step 140 231 the same at a quarter of the learning
 /// rates, from step 205 046 the same at 64² on the scaled-patch step (32² patches, whose
 /// discriminator input, what the 32² stages trained, fades nothing in), with the curve
 /// evaluated at 64², and from step 227 393 the same with larger patches, a quarter of them
-/// at native resolution; the pose terms on whole-chair patches at the weight that makes up
+/// at native resolution (half from step 227 651); the pose terms on whole-chair patches at the weight that makes up
 /// for their count.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_batch_only() {
@@ -479,7 +479,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_bat
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8], vec![32, 32, 32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8, 8], vec![32, 32, 32, 32, 32]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -521,7 +521,19 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_bat
     let counted = |beta: f64| (1.0 - x).powf(beta);
     assert!((counted(0.8) - 0.276).abs() < 5e-4, "{}", counted(0.8));
     assert!((counted(0.4) - 0.525).abs() < 5e-4, "{}", counted(0.4));
-    for (step, share, tolerance) in [(227_392, counted(0.8), 0.5), (227_393, 0.75 * counted(0.4), 0.05)] {
+    // From step 227 651 half the patches are native: 57.1 = 15 / (0.5 · counted(0.4)).
+    let mut half = cpu.stages[4].clone();
+    assert_eq!((half.from_step, half.pose_weight), (227_651, Some(57.1)));
+    let h = half.patch.as_mut().expect("the half-native patches");
+    assert_eq!(h.native_share, 0.5);
+    h.native_share = 0.25;
+    (half.from_step, half.pose_weight) = (cpu.stages[3].from_step, cpu.stages[3].pose_weight);
+    assert_eq!(half, cpu.stages[3]);
+    assert_eq!([227_650, 227_651].map(|s| cpu.loss_at(s).pose_weight), [38.1, 57.1]);
+    assert_eq!((cpu.switch_step(227_651), cpu.alpha(227_651)), (None, 1.0));
+    for (step, share, tolerance) in
+        [(227_392, counted(0.8), 0.5), (227_393, 0.75 * counted(0.4), 0.05), (227_651, 0.5 * counted(0.4), 0.05)]
+    {
         let w = cpu.loss_at(step).pose_weight;
         assert!((15.0 / share - w).abs() < tolerance, "step {step}: {w}");
     }
