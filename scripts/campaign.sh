@@ -10,8 +10,12 @@
 #   scripts/campaign.sh snapshot [RUN_DIR]   copy its full state into models/chairs-campaign/run,
 #                                            overwriting the previous copy (gdrf-train snapshot;
 #                                            stop it first, then commit the copy)
-#   scripts/campaign.sh verify   [RUN_DIR]   resume a scratch copy of the committed state to its
+#   scripts/campaign.sh verify   [RUN_DIR] [THREADS]
+#                                            resume a scratch copy of the committed state to its
 #                                            next logged step and compare that line with the run's
+#                                            (on THREADS threads, default the CPU config's: the
+#                                            thread count changes the rounding, so it must be the
+#                                            one the run had at that step)
 #   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
 #                                            into models/chairs-campaign (gdrf-train ship); the
 #                                            first time it replaces the 32²-trained model, that
@@ -96,7 +100,9 @@ print("last evaluation: step", l["step"], "images", l["images_seen"], "positions
     scratch="$(mktemp -d)"
     trap 'rm -rf "$scratch"' EXIT
     cp -r "$shipped" "$scratch/run"
-    nice -n 19 "$bin" --resume "$scratch/run" --config "$cpu_config" --steps $(( to - from + 1 )) --quiet >/dev/null
+    threads=()
+    [ -z "${3:-}" ] || threads=(--threads "$3")
+    nice -n 19 "$bin" --resume "$scratch/run" --config "$cpu_config" --steps $(( to - from + 1 )) "${threads[@]}" --quiet >/dev/null
     "${GDRF_PYTHON:-python3}" - "$run/metrics.jsonl" "$scratch/run/metrics.jsonl" "$to" <<'PY'
 import json, sys
 def logged(path, step):
@@ -130,7 +136,7 @@ PY
     fi
     ;;
   *)
-    sed -n '2,20p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,26p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     [ -z "$cmd" ] || exit 2
     ;;
 esac

@@ -9,11 +9,11 @@
 //! so that generated images can be placed on the real images' blur-to-bias line.
 //!
 //! `tone` instead asks the same of the chairs' tone: each row gives the mean darkness
-//! (1 − grey, in [0, 1]) of the chair's pixels (darker than 0.03), its spread and the
-//! share of the image darker than 0.03, 0.1 and 0.3, and the real images are also scored with the
-//! chair's darkness scaled to the generated chairs' mean, and the generated ones to the
-//! real chairs' (the background stays white), and both with their faint pixels (darkness
-//! below 0.1 or 0.3) made white.
+//! (1 − grey, in [0, 1]) of the chair's pixels (darker than 0.03), its spread and the share
+//! of the image darker than 0.03, 0.1 and 0.3. The real images are also scored with the
+//! chair's darkness scaled to the generated chairs' mean, the generated ones to the real
+//! chairs' (the background stays white), and both with their faint pixels (darkness below
+//! 0.1 or 0.3) made white.
 //!
 //! `cargo run --release -p gdrf-core --example pitch_blur -- GENERATOR DATASET PROBE [N] [SAMPLES] [quick|tone]`
 //! (`quick`: the generator's plain and sharpened renders only).

@@ -4,6 +4,12 @@ use crate::error::require;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
+/// `skip_serializing_if` for a weight or share added after configs were written: left at 0,
+/// it is not written, so that configs and checkpoints from before the key keep their bytes.
+pub(crate) fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 /// Sizes of the generator's networks, and which template they have.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

@@ -90,15 +90,9 @@ pub struct LossConfig {
     /// a fringe of low density that softens the edge; the term asks each ray to be object or
     /// background (docs/campaign-log.md, "The curve at 64²"). Whole-image and scaled-patch
     /// steps only (not the two-pass `regions` step).
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::config::is_zero")]
     pub opacity_weight: f64,
     pub reg: RegConfig,
-}
-
-/// A weight left at 0 is not written, so that configs and checkpoints from before the key
-/// keep their bytes.
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
 }
 
 impl Default for LossConfig {

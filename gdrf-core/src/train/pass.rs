@@ -62,12 +62,12 @@ pub fn generator_judgement(
     cfg: &LossConfig,
 ) -> Result<Losses> {
     let d = disc.judge(judged.img, at.alpha)?;
-    let samples = select_samples(&RenderedRays::concat(parts), &cfg.reg, reg_rays);
+    let rays = RenderedRays::concat(parts);
+    let samples = select_samples(&rays, &cfg.reg, reg_rays);
     let reg = regularisers(generator, &latents.shape, &samples, cfg.reg.variant);
     let objective = GeneratorObjective::new(cfg, at);
     let losses = objective.main(&d, judged.img, &judged.poses.stacked(), judged.z, reg)?;
-    Ok(objective
-        .add_opacity(losses, || Tensor::cat(&parts.iter().map(RenderedRays::object_share).collect::<Vec<_>>(), 1)))
+    Ok(objective.add_opacity(losses, || rays.object_share()))
 }
 
 /// The discriminator's loss: fakes rendered without gradients, then

@@ -78,12 +78,8 @@ pub struct PatchConfig {
     pub anneal_images: i64,
     /// Share of patches drawn at scale P/R, in [0, 1) (0: EpiGRAF's law alone). Written
     /// only where set, so configs from before it read and write back unchanged.
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::config::is_zero")]
     pub native_share: f64,
-}
-
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
 }
 
 impl Default for PatchConfig {
