@@ -19,7 +19,8 @@
 #   scripts/campaign.sh ship     [RUN_DIR]   copy the generator its learning curve ranks best
 #                                            into models/chairs-campaign (gdrf-train ship); the
 #                                            first time it replaces the 32²-trained model, that
-#                                            one is kept in models/chairs-campaign-32
+#                                            one is kept in models/chairs-campaign-32, with its
+#                                            initialiser
 #
 # RUN_DIR defaults to ../campaign/chairs, outside the checkout. The run records paths
 # relative to the repository root, so everything runs from there. The binary runs from a
@@ -133,10 +134,17 @@ PY
       mkdir -p "$model-32"
       cp "$before" "$model-32/generator.safetensors.tmp" && mv -f "$model-32/generator.safetensors.tmp" "$model-32/generator.safetensors"
       echo "campaign: kept the generator it replaced in $model-32"
+      # Its initialiser belongs to it (gdrf-invert refuses it for any other generator):
+      # it moves with it, and the new one is trained by the command in docs/inversion.md.
+      for f in "$model"/initialiser*; do
+        [ -e "$f" ] || continue
+        mv -f "$f" "$model-32/"
+        echo "campaign: moved $(basename "$f") with it"
+      done
     fi
     ;;
   *)
-    sed -n '2,26p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
+    sed -n '2,27p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'
     [ -z "$cmd" ] || exit 2
     ;;
 esac

@@ -6,7 +6,7 @@
 #      with `target/debug/gdrf-train --resume out/demo-run`),
 #   3. samples on a turntable and a shape/appearance swap matrix from the model shipped
 #      in models/chairs-campaign/ (the training campaign's checkpoint its learning curve
-#      ranks best, hours on a 2-core CPU; trained at 32², shown at 64²),
+#      ranks best, days on 2-core CPUs; trained at 64² since its step 205 046),
 #   4. editing with it: a swap matrix with kept shape sides, an orbit GIF of one shape with
 #      another's appearance, an appearance interpolation and a mesh with correspondence
 #      colours,
@@ -51,10 +51,10 @@ model=models/chairs-campaign/generator.safetensors
   --out out/invert --force --quiet
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from out/invert/features.safetensors \
   --orbit 12 --resolution 64 --samples 12 --out out/invert-swap --force
-# Scored where it learned (32², 12 + 12 samples). 200 images keep this to a couple of
-# minutes; the figures in the README use --num 500.
+# Scored where it learned (64², 12 + 12 samples). 200 images keep this to a few minutes;
+# the figures in the README use --num 500 and a 16 × 16 swap matrix.
 "$train" eval --generator "$model" --dataset data/chairs-64 --probe models/chairs-probe/probe.safetensors \
-  --num 200 --resolution 32 --samples 12 --out out/eval
+  --num 200 --resolution 64 --samples 12 --out out/eval
 echo "demo: out/demo-run/ (training run: samples/, metrics.jsonl, losses.png); from the shipped model:"
 echo "      out/samples.png, out/swap.png, out/orbit/, out/interp/, out/chair1.ply, out/invert/,"
 echo "      out/invert-swap/ and out/eval/"

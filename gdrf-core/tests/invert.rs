@@ -195,7 +195,7 @@ fn pose_refinement_moves_a_wrong_pose_toward_the_true_one() {
 #[test]
 fn the_initialiser_beats_the_mean_code_on_held_out_generated_images() {
     use gdrf_core::field::generator::Generator;
-    use gdrf_core::invert::init::{generate, train, InitConfig};
+    use gdrf_core::invert::init::{generate, train, InitConfig, Start};
     use gdrf_core::rng::{Purpose, RandomSource, StepRng};
     use gdrf_core::{CameraConfig, GeneratorConfig};
     let (vs, g) = gdrf_core::rng::with_global_seed(4, || {
@@ -221,7 +221,7 @@ fn the_initialiser_beats_the_mean_code_on_held_out_generated_images() {
     };
     let tuples = generate(&g, &cam, &cfg, &mut |_| {}).unwrap();
     let out = std::env::temp_dir().join(format!("gdrf-init-beats-{}.safetensors", std::process::id()));
-    let (_, evals) = train(&g, &cam, "gen", &tuples, None, None, &cfg, &out, false, &mut |_| {}).unwrap();
+    let (_, evals) = train(&g, &cam, "gen", &tuples, None, None, &cfg, &out, Start::Fresh, &mut |_| {}).unwrap();
     std::fs::remove_file(&out).ok();
     let e = evals.last().unwrap();
     eprintln!("held-out w_s MSE {:.4}, the mean code's {:.4}", e.w_mse, e.mean_code_w_mse);

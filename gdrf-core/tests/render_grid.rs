@@ -457,7 +457,10 @@ fn the_automatic_grids_render_the_campaign_model_no_less_accurately() {
 fn the_training_grid_keeps_what_held_out_codes_render() {
     use gdrf_core::train::config::OccupancyConfig;
     use gdrf_core::train::occupancy::SharedGrid;
-    let (m, cam) = campaign();
+    // The step-95 000 model, whose shapes leave 12 % of this grid's cells empty after 8
+    // refreshes; the step-230 000 model's leave under 5 %, too few for the bound to test
+    // anything.
+    let (m, cam) = model("chairs-campaign-32");
     let g = &m.generator;
     let dim = g.cfg.latent_dim as i64;
     let oc = OccupancyConfig::default();

@@ -335,12 +335,12 @@ mod tests {
             let c = &model.photo.cfg;
             (c.resolution, c.samples, c.steps)
         };
-        // The shipped generator's header records 32² and 24 samples per ray.
+        // The shipped generator's header records 64² and 24 samples per ray.
         let shipped = gdrf_core::paths::shipped_generator();
         let shipped = shipped.to_str().unwrap();
-        assert_eq!(photo_cfg(&["x", "--checkpoint", shipped, "--photo-steps", "7", "--device", "cpu"]), (32, 12, 7));
+        assert_eq!(photo_cfg(&["x", "--checkpoint", shipped, "--photo-steps", "7", "--device", "cpu"]), (64, 12, 7));
         // Without --checkpoint: the shipped generator.
-        assert_eq!(photo_cfg(&["x", "--device", "cpu"]).0, 32);
+        assert_eq!(photo_cfg(&["x", "--device", "cpu"]).0, 64);
         // A random generator has no training record: gdrf-invert's plain defaults.
         let d = gdrf_core::invert::InvertConfig::default();
         assert_eq!(photo_cfg(&["x", "--random-init", "--device", "cpu"]), (d.resolution, d.samples, d.steps));

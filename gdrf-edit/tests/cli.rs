@@ -27,12 +27,12 @@ fn the_swap_needs_no_subcommand_and_renders_the_shipped_model_where_it_learned()
     let swap = ["--shape-from", "seed:0", "--appearance-from", "seed:1", "--views", "2", "--device", "cpu"];
     let o = gdrf_edit(&[&swap[..], &["--out", plain.to_str().unwrap()]].concat());
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
-    // The shipped model learned at 32² (its checkpoint records it).
+    // The shipped model learned at 64² (its checkpoint records it).
     for f in ["frame-000.png", "frame-001.png", "sequence.gif"] {
         assert!(plain.join(f).is_file(), "{f} missing");
     }
-    assert_eq!(size(&plain.join("frame-000.png")), (32, 32));
-    assert_eq!(size(&plain.join("strip.png")), (64, 32));
+    assert_eq!(size(&plain.join("frame-000.png")), (64, 64));
+    assert_eq!(size(&plain.join("strip.png")), (128, 64));
     // The same images as the `swap` subcommand with the shipped model named.
     let shipped = common::repo_root().join("models/chairs-campaign/generator.safetensors");
     let o = gdrf_edit(
@@ -117,22 +117,24 @@ fn render_and_swap_build_an_occupancy_grid_where_it_pays() {
     let out = dir.path("out");
     let png = out.with_extension("png");
     let stdout = |o: &Output| String::from_utf8_lossy(&o.stdout).to_string();
+    let at_32 = ["--resolution", "32", "--samples", "12"];
     let render = |extra: &[&str]| {
         let o = gdrf_edit(
-            &[&["render", "--seeds", "0", "--device", "cpu", "--out", png.to_str().unwrap()][..], extra].concat(),
+            &[&["render", "--seeds", "0", "--device", "cpu", "--out", png.to_str().unwrap()][..], &at_32[..], extra]
+                .concat(),
         );
         assert_eq!(o.status.code(), Some(0), "{extra:?}: {}", stderr(&o));
         stdout(&o)
     };
-    // The shipped model renders at 32² with 12 + 12 samples a ray: four views are 98 304
-    // samples (no grid pays), five 122 880 (a 32³ grid does), forty-four 1.08 M (64³).
+    // At 32² with 12 + 12 samples a ray, four views are 98 304 samples (no grid pays), five
+    // 122 880 (a 32³ grid does), forty-four 1.08 M (64³).
     assert!(!render(&["--views", "4"]).contains("occupied cells"));
     assert!(render(&["--views", "5"]).contains("in the occupied cells of a 32³ grid"));
     assert!(render(&["--views", "44"]).contains("in the occupied cells of a 64³ grid"));
     assert!(!render(&["--views", "5", "--grid", "off"]).contains("occupied cells"));
     assert!(render(&["--grid", "16"]).contains("between the first and last occupied cells of a 16³ grid"));
     let swap = ["--shape-from", "seed:0", "--appearance-from", "seed:1", "--device", "cpu", "--force"];
-    let o = gdrf_edit(&[&swap[..], &["--views", "5", "--out", out.to_str().unwrap()]].concat());
+    let o = gdrf_edit(&[&swap[..], &at_32[..], &["--views", "5", "--out", out.to_str().unwrap()]].concat());
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert!(stdout(&o).contains("in the occupied cells of a 32³ grid"), "{}", stdout(&o));
     assert!(out.join("frame-004.png").is_file());

@@ -120,7 +120,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     assert_eq!(start[1].as_f64(), Some(0.0), "{start}");
 
     // Without --resolution and --samples it inverts where the generator learned (the shipped
-    // header: 32², 24 samples per ray, so 12 + 12); a generator without that record gets 64²
+    // header: 64², 24 samples per ray, so 12 + 12); a generator without that record gets 64²
     // and 24 + 24, and a flag given wins over the header.
     let bare = tmp.path("bare.safetensors");
     let mut header = m.header.clone();
@@ -137,8 +137,8 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
         (r["config"]["resolution"].as_i64().unwrap(), r["config"]["samples"].as_i64().unwrap(), said)
     };
     let (res, n, said) = config_of(&[], "learned");
-    assert_eq!((res, n), (32, 12));
-    assert!(said.contains("at 32² (where the generator learned) with 12 + 12 samples"), "{said}");
+    assert_eq!((res, n), (64, 12));
+    assert!(said.contains("at 64² (where the generator learned) with 12 + 12 samples"), "{said}");
     let (res, n, said) = config_of(&["--generator", bare.to_str().unwrap()], "bare");
     assert_eq!((res, n), (64, 24));
     assert!(!said.contains("where the generator learned"), "{said}");
@@ -146,8 +146,9 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     assert_eq!((res, n), (16, 4));
 
     // --grid takes gdrf-edit's values. `auto` counts the samples one grid serves: 10 steps
-    // (--grid-refresh) × 32² pixels × 24 samples = 245 760, over 100 000, so a 32³ grid
-    // sampled only in its cells; refreshed every 3 steps, 73 728, so none. Off by default.
+    // (--grid-refresh) × 64² pixels × 24 samples = 983 040, over 100 000 (and under a
+    // million), so a 32³ grid sampled only in its cells; refreshed every step, 98 304, so
+    // none. Off by default.
     let grid_of = |extra: &[&str], name: &str| -> (i64, bool) {
         let dir = tmp.path(name);
         let mut args = vec![photo.as_str(), "--pose", "62.5,-8.2", "--steps", "2", "--orbit", "0", "--quiet"];
@@ -160,7 +161,7 @@ fn a_photo_inverts_and_bad_inputs_are_named() {
     };
     assert_eq!(grid_of(&[], "grid-default"), (0, false));
     assert_eq!(grid_of(&["--grid", "auto"], "grid-auto"), (32, true));
-    assert_eq!(grid_of(&["--grid", "auto", "--grid-refresh", "3"], "grid-auto-3"), (0, false));
+    assert_eq!(grid_of(&["--grid", "auto", "--grid-refresh", "1"], "grid-auto-1"), (0, false));
     assert_eq!(grid_of(&["--grid", "16"], "grid-16"), (16, false));
     assert_eq!(grid_of(&["--grid", "16", "--grid-cells"], "grid-16-cells"), (16, true));
 

@@ -30,8 +30,21 @@ pub struct TrainInitOptions {
     #[arg(long, value_name = "FILE")]
     pub ship: Option<PathBuf>,
     /// Continue the training saved in --out.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "warm_from")]
     pub resume: bool,
+    /// Start from the weights of this initialiser file instead of random ones, with a new
+    /// optimiser: one made for another generator, such as the default generator's before a
+    /// new one replaced it (models/chairs-campaign-32/initialiser.safetensors). It needs the
+    /// same --backbone and --resolution; the pose reading carries over, so far fewer --steps
+    /// are needed.
+    #[arg(long, value_name = "FILE")]
+    pub warm_from: Option<PathBuf>,
+    /// With --warm-from and ResNet-34: train the head alone, the backbone kept as it starts
+    /// (its features of every image are taken once, so the steps cost next to nothing). The
+    /// shipped file then repeats the backbone bytes of the --warm-from file, so a repository
+    /// that holds both grows by the head alone.
+    #[arg(long)]
+    pub head_only: bool,
     /// Keep the rendered tuples in FILE: read them from it when it holds the same generator's
     /// renders at the same settings, else render them and write it (several trainings on
     /// the same renders then render them once).
@@ -117,6 +130,11 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         .with_context(|| format!("loading --generator {}", gen_path.display()))?;
     let cfg = config_of(a, &InvertConfig::where_learned(&m.header));
     cfg.validate()?;
+    if a.head_only && a.warm_from.is_none() && !a.resume {
+        return Err(Error::Invalid(
+            "--head-only keeps the backbone as it starts, so it needs --warm-from FILE (or --resume of a head-only training)".into(),
+        ));
+    }
     if a.resume && !a.out.is_file() {
         return Err(Error::Invalid(format!("--resume: {} does not exist", a.out.display())));
     }
@@ -149,9 +167,14 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         }
         None => None,
     };
+    // What is trained, said plainly: a warm start is not "from scratch".
+    let network = match (&a.warm_from, cfg.backbone, cfg.head_only) {
+        (Some(_), init_stage::Backbone::Resnet34, true) => "ResNet-34's head, its backbone kept".to_string(),
+        (Some(_), init_stage::Backbone::Resnet34, false) => "ResNet-34, warm-started".to_string(),
+        _ => cfg.backbone.name().to_string(),
+    };
     eprintln!(
-        "training an initialiser ({}) for {} on {} generated {}² images ({} held out){}, {} steps of {}; device {dev:?}, {threads} threads",
-        cfg.backbone.name(),
+        "training an initialiser ({network}) for {} on {} generated {}² images ({} held out){}, {} steps of {}; device {dev:?}, {threads} threads",
         gen_path.display(),
         cfg.count,
         cfg.resolution,
@@ -168,6 +191,9 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         cfg.steps,
         cfg.batch_size
     );
+    if let Some(from) = &a.warm_from {
+        eprintln!("starting from the weights of {}, with a new optimiser", from.display());
+    }
     let b = bar(cfg.count, "rendering", "tuples");
     let t0 = std::time::Instant::now();
     let tuples = tuples_for(a, g, &cam, &id, &cfg, dev, &b)?;
@@ -175,13 +201,18 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
     let generate_s = t0.elapsed().as_secs_f64();
     // Only a frozen backbone takes its features before the first step.
     let features = match cfg.backbone {
-        init_stage::Backbone::EffnetLite0 => bar(cfg.count, "features", "images"),
-        init_stage::Backbone::Resnet34 => progress::bar(0, "images", true),
+        init_stage::Backbone::Resnet34 if !cfg.head_only => progress::bar(0, "images", true),
+        _ => bar(cfg.count, "features", "images"),
     };
     let training = bar(cfg.steps, "training", "steps");
+    let start = match (&a.warm_from, a.resume) {
+        (_, true) => init_stage::Start::Resume,
+        (Some(from), false) => init_stage::Start::WarmFrom(from),
+        (None, false) => init_stage::Start::Fresh,
+    };
     let t1 = std::time::Instant::now();
     let (mut f, evals) =
-        init_stage::train(g, &cam, &id, &tuples, reals.as_ref(), lite0, &cfg, &a.out, a.resume, &mut |p| match p {
+        init_stage::train(g, &cam, &id, &tuples, reals.as_ref(), lite0, &cfg, &a.out, start, &mut |p| match p {
             init_stage::TrainProgress::Features(e) => progress::follow(&features, e),
             init_stage::TrainProgress::Step(step, ev) => {
                 if !features.is_finished() {
@@ -200,11 +231,21 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
     // The curve: the training so far, a resumed run's earlier evaluations included.
     let json_path = PathBuf::from(format!("{}.json", a.out.display()));
     let history = history_of(a.resume, &json_path, &evals);
+    // A resumed training keeps saying where its first leg started.
+    let warm_from = match &a.warm_from {
+        Some(p) => serde_json::json!(crate::paths::shown(p)),
+        None if a.resume => std::fs::read_to_string(&json_path)
+            .ok()
+            .and_then(|s| serde_json::from_str::<serde_json::Value>(&s).ok())
+            .map_or(serde_json::Value::Null, |v| v["warm_from"].clone()),
+        None => serde_json::Value::Null,
+    };
     let report = serde_json::json!({
         "generator": crate::paths::shown(&gen_path),
         "generator_id": id,
-        "backbone": cfg.backbone.name(),
+        "backbone": network,
         "real_images": a.real.as_ref().map(|d| d.display().to_string()),
+        "warm_from": warm_from,
         "config": cfg,
         "generate_seconds": generate_s,
         "train_seconds": train_s,
@@ -303,6 +344,7 @@ fn config_of(a: &TrainInitOptions, learned: &InvertConfig) -> InitConfig {
         real_held_out: a.real_held_out,
         eval_interval: a.eval_interval,
         seed: a.seed,
+        head_only: a.head_only,
         ..Default::default()
     }
 }

@@ -31,7 +31,7 @@ use tch::{Device, Kind, Tensor};
 mod data;
 mod training;
 pub use data::{generate, load_real_images, RealImages, Tuples};
-pub use training::{train, InitEval, TrainProgress};
+pub use training::{train, InitEval, Start, TrainProgress};
 
 /// Metadata key of an initialiser file's JSON header.
 pub const INIT_KEY: &str = "gdrf_initialiser";
@@ -102,6 +102,11 @@ pub struct InitConfig {
     /// Validation every this many steps (and at the end).
     pub eval_interval: i64,
     pub seed: u64,
+    /// Train the head alone: ResNet-34's weights and batch-norm statistics stay as they
+    /// start (a warm start's), and its features of every image are taken once, as a frozen
+    /// Lite0's are. The shipped file then repeats the backbone bytes of the file it started
+    /// from, which costs a repository next to nothing.
+    pub head_only: bool,
 }
 
 impl Default for InitConfig {
@@ -125,6 +130,7 @@ impl Default for InitConfig {
             real_held_out: 256,
             eval_interval: 250,
             seed: 0,
+            head_only: false,
         }
     }
 }
@@ -184,6 +190,11 @@ impl InitConfig {
         }
         if !(4..=512).contains(&self.image_resolution) {
             return bad("image_resolution", self.image_resolution.to_string(), "4 to 512");
+        }
+        if self.head_only && self.image_weight > 0.0 {
+            // The re-rendering term backpropagates through F's input images, which a
+            // head-only training never reads again.
+            return bad("head_only", "true with image_weight > 0".into(), "one of them");
         }
         Ok(())
     }
@@ -351,6 +362,16 @@ impl Initialiser {
         })
     }
 
+    /// The frozen backbone's features, before any standardisation: Lite0's, or ResNet-34's
+    /// pooled feature in inference mode (batch-norm statistics as they are).
+    fn frozen_features(&self, img: &Tensor) -> Result<Tensor> {
+        Ok(match (&self.resnet, &self.lite0) {
+            (_, Some(l)) => l.features(img)?,
+            (Some(net), None) => net.forward_t(img, false),
+            _ => unreachable!("one backbone"),
+        })
+    }
+
     fn standardise(&self, f: &Tensor) -> Tensor {
         match (&self.feat_mean, &self.feat_std) {
             (Some(m), Some(s)) => (f - m) / s,
@@ -460,6 +481,34 @@ impl Initialiser {
     /// network in memory is the one written.
     pub fn save_half(&self, path: &Path, generator_id: &str, step: i64, config: &InitConfig) -> Result<()> {
         self.save(path, &self.header(generator_id, step, true, config), None)
+    }
+
+    /// Sets every weight (and batch-norm statistic) to those of the initialiser file `from`,
+    /// made for any generator: the start of a warm-started training. Its backbone, input
+    /// side and output sizes must be this network's.
+    pub fn copy_weights_from(&self, from: &Path) -> Result<()> {
+        let device = self.vs.device();
+        let (src, _, _) = Self::load_with_state(from, None, device)?;
+        let same = (src.backbone, src.resolution, src.mapping_hidden, src.appearance_dim)
+            == (self.backbone, self.resolution, self.mapping_hidden, self.appearance_dim);
+        if !same {
+            return Err(Error::Data {
+                path: from.to_path_buf(),
+                reason: format!(
+                    "initialiser: a warm start needs the same network: it has backbone {}, input {}², w_s {} and appearance {}, this training {}, {}², {} and {}",
+                    src.backbone.name(), src.resolution, src.mapping_hidden, src.appearance_dim,
+                    self.backbone.name(), self.resolution, self.mapping_hidden, self.appearance_dim
+                ),
+            });
+        }
+        let theirs = src.vs.variables();
+        tch::no_grad(|| {
+            for (name, mut v) in self.vs.variables() {
+                // The same constructor made both, so every name is there with its shape.
+                v.copy_(&theirs[&name]);
+            }
+        });
+        Ok(())
     }
 
     /// Loads an initialiser file made for the generator of identity `generator_id`.
@@ -649,7 +698,7 @@ mod tests {
                 steps.push(s)
             }
         };
-        let (full, evals) = train(&g, &cam, "gen", &t, None, None, &cfg(), &a, false, &mut record).unwrap();
+        let (full, evals) = train(&g, &cam, "gen", &t, None, None, &cfg(), &a, Start::Fresh, &mut record).unwrap();
         assert_eq!(steps, [1, 2, 3, 4]);
         assert_eq!(evals.iter().map(|e| e.step).collect::<Vec<_>>(), [2, 4]);
         assert_eq!(evals.iter().map(|e| e.images_seen).collect::<Vec<_>>(), [8, 16]);
@@ -660,7 +709,7 @@ mod tests {
         // multithreaded CPU convolution backward is not deterministic, so two fresh runs already
         // differ in the last bits, which Adam amplifies for near-zero gradients.)
         let two = InitConfig { steps: 2, ..cfg() };
-        let (part, _) = train(&g, &cam, "gen", &t, None, None, &two, &b, false, &mut |_| {}).unwrap();
+        let (part, _) = train(&g, &cam, "gen", &t, None, None, &two, &b, Start::Fresh, &mut |_| {}).unwrap();
         let (saved, h, state) = Initialiser::load_with_state(&b, None, Device::Cpu).unwrap();
         assert_eq!(h.step, 2);
         assert!(state.keys().any(|k| k.starts_with("adam.m.")), "the Adam state is saved");
@@ -668,7 +717,7 @@ mod tests {
             assert!(v.equal(&saved.vs.variables()[&name]), "{name}");
         }
         let mut resumed_steps = Vec::new();
-        let (_, evals) = train(&g, &cam, "gen", &t, None, None, &cfg(), &b, true, &mut |p| {
+        let (_, evals) = train(&g, &cam, "gen", &t, None, None, &cfg(), &b, Start::Resume, &mut |p| {
             if let TrainProgress::Step(s, _) = p {
                 resumed_steps.push(s)
             }
@@ -677,7 +726,8 @@ mod tests {
         assert_eq!(resumed_steps, [3, 4]);
         assert_eq!(evals.iter().map(|e| e.step).collect::<Vec<_>>(), [4]);
         let other = InitConfig { pose_weight: 0.5, ..cfg() };
-        let e = train(&g, &cam, "gen", &t, None, None, &other, &b, true, &mut |_| {}).err().map(|e| e.to_string());
+        let e =
+            train(&g, &cam, "gen", &t, None, None, &other, &b, Start::Resume, &mut |_| {}).err().map(|e| e.to_string());
         assert!(e.as_deref().unwrap_or("").contains("other initialiser settings"), "{e:?}");
         // Another generator's initialiser is refused, naming both; predictions are finite.
         let err = Initialiser::load(&a, "other", Device::Cpu).err().map(|e| e.to_string()).unwrap_or_default();
@@ -701,7 +751,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("gdrf-init-real-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let out = dir.join("f.safetensors");
-        let (f, evals) = train(&g, &cam, "gen", &t, Some(&reals), None, &c, &out, false, &mut |_| {}).unwrap();
+        let (f, evals) = train(&g, &cam, "gen", &t, Some(&reals), None, &c, &out, Start::Fresh, &mut |_| {}).unwrap();
         let e = evals.last().unwrap();
         assert_eq!(e.images_seen, 4 * (4 + 3));
         assert!(e.real_yaw_error_deg.is_some_and(f64::is_finite) && e.appearance_mse.is_some_and(f64::is_finite));
@@ -709,7 +759,7 @@ mod tests {
         assert_eq!(p.appearance_raw.unwrap().size(), t.appearance_raw.narrow(0, 0, 1).size());
         // Every real image held out: nothing to train on, an error naming the key.
         let none = InitConfig { real_held_out: 5, ..c };
-        let err = train(&g, &cam, "gen", &t, Some(&reals), None, &none, &out, false, &mut |_| {}).err();
+        let err = train(&g, &cam, "gen", &t, Some(&reals), None, &none, &out, Start::Fresh, &mut |_| {}).err();
         assert!(err.map(|e| e.to_string()).unwrap_or_default().contains("init.real_held_out"));
         std::fs::remove_dir_all(dir).ok();
     }
@@ -731,7 +781,7 @@ mod tests {
                 (backbone == Backbone::EffnetLite0).then(|| lite0_weights(&EfficientNetLite0::default_path()).unwrap());
             let out = dir.join("train.safetensors");
             let _ = std::fs::remove_file(&out);
-            let (mut f, _) = train(&g, &cam, "gen", &t, None, w, &c, &out, false, &mut |_| {}).unwrap();
+            let (mut f, _) = train(&g, &cam, "gen", &t, None, w, &c, &out, Start::Fresh, &mut |_| {}).unwrap();
             let photo = t.images.narrow(0, 0, 1);
             let full = f.predict(&photo).unwrap();
             f.round_to_half().unwrap();
@@ -763,6 +813,76 @@ mod tests {
             let (dp, dy) = ((again.pose.0 - full.pose.0).to_degrees(), (again.pose.1 - full.pose.1).to_degrees());
             assert!(dp.abs() < 2.0 && dy.abs() < 2.0, "{backbone:?}: pose off by {dp}°, {dy}°");
         }
+        std::fs::remove_dir_all(dir).ok();
+    }
+
+    /// A warm start takes every weight of another generator's initialiser; with `head_only`
+    /// the backbone's weights and batch-norm statistics stay exactly as they started, so the
+    /// shipped file repeats them; a file of another shape is refused, naming it.
+    #[test]
+    fn a_warm_start_takes_another_initialisers_weights_and_head_only_keeps_the_backbone() {
+        let (_vs, g) = small();
+        let cam = CameraConfig::default();
+        let dir = std::env::temp_dir().join(format!("gdrf-init-warm-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let t = generate(&g, &cam, &cfg(), &mut |_| {}).unwrap();
+        let (first, shipped) = (dir.join("first.safetensors"), dir.join("first-half.safetensors"));
+        let (mut a, _) = train(&g, &cam, "old", &t, None, None, &cfg(), &first, Start::Fresh, &mut |_| {}).unwrap();
+        a.round_to_half().unwrap();
+        a.save_half(&shipped, "old", 4, &cfg()).unwrap();
+        let a_vars = a.vs.variables();
+
+        // The copy alone (a fresh network of the same shape, then the file's weights).
+        let b = Initialiser::new(Backbone::Resnet34, Device::Cpu, 16, 0, 16, None).unwrap();
+        b.reinitialise(7);
+        b.copy_weights_from(&shipped).unwrap();
+        for (name, v) in b.vs.variables() {
+            assert!(v.equal(&a_vars[&name]), "{name}");
+        }
+        // Head only, for another generator: only head.* moves.
+        let c = InitConfig { head_only: true, ..cfg() };
+        let out = dir.join("head.safetensors");
+        let (h, evals) =
+            train(&g, &cam, "new", &t, None, None, &c, &out, Start::WarmFrom(&shipped), &mut |_| {}).unwrap();
+        assert!(evals.iter().all(|e| e.w_mse.is_finite()));
+        let mut moved = Vec::new();
+        for (name, v) in h.vs.variables() {
+            if !v.equal(&a_vars[&name]) {
+                moved.push(name);
+            }
+        }
+        moved.sort();
+        assert_eq!(moved, ["head.bias", "head.weight"]);
+        // Its file names the new generator and loads for it alone.
+        assert!(Initialiser::load(&out, "new", Device::Cpu).is_ok());
+        assert!(Initialiser::load(&out, "old", Device::Cpu).is_err());
+        // The whole network warm-started: the backbone moves too.
+        let whole = dir.join("whole.safetensors");
+        let (w, _) =
+            train(&g, &cam, "new", &t, None, None, &cfg(), &whole, Start::WarmFrom(&shipped), &mut |_| {}).unwrap();
+        assert!(w.vs.variables().iter().any(|(n, v)| n.starts_with("resnet.") && !v.equal(&a_vars[n])));
+        // Another input side is another network: refused, naming the file.
+        let c32 = InitConfig { resolution: 32, ..cfg() };
+        let t32 = generate(&g, &cam, &c32, &mut |_| {}).unwrap();
+        let err = train(
+            &g,
+            &cam,
+            "new",
+            &t32,
+            None,
+            None,
+            &c32,
+            &dir.join("x.safetensors"),
+            Start::WarmFrom(&shipped),
+            &mut |_| {},
+        )
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+        assert!(err.contains("first-half.safetensors") && err.contains("same network"), "{err}");
+        // A head-only training that re-renders through its input is refused, naming the key.
+        let e = InitConfig { image_weight: 1.0, ..c }.validate().err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains("init.head_only"), "{e}");
         std::fs::remove_dir_all(dir).ok();
     }
 }

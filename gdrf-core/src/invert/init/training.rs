@@ -69,14 +69,15 @@ enum Inputs {
 }
 
 impl Inputs {
-    fn of(init: &Initialiser, images: &Tensor, progress: &mut dyn FnMut(Event)) -> Result<Self> {
-        if init.lite0.is_none() {
+    /// The images, or a frozen backbone's features of them (Lite0's always, ResNet-34's
+    /// with `head_only`: in inference mode, so its batch-norm statistics stay).
+    fn of(init: &Initialiser, images: &Tensor, head_only: bool, progress: &mut dyn FnMut(Event)) -> Result<Self> {
+        if init.lite0.is_none() && !head_only {
             return Ok(Inputs::Images(images.shallow_clone()));
         }
-        let l = init.lite0.as_ref().expect("checked");
         let (mut out, mut done, n) = (Vec::new(), 0, images.size()[0] as u64);
         for chunk in images.split(64, 0) {
-            out.push(l.features(&chunk)?);
+            out.push(tch::no_grad(|| init.frozen_features(&chunk))?);
             done += chunk.size()[0] as u64;
             progress(Event::new("features", done, n));
         }
@@ -177,10 +178,23 @@ pub enum TrainProgress<'a> {
     Step(i64, Option<&'a InitEval>),
 }
 
+/// Where [`train`] starts.
+#[derive(Debug, Clone, Copy)]
+pub enum Start<'a> {
+    /// From the seed's random weights.
+    Fresh,
+    /// From the weights of another initialiser file (one made for another generator, such
+    /// as the one a new default generator replaces), with a new optimiser at step 0: what
+    /// it learned of reading poses and images carries over, its w_s is re-learned.
+    WarmFrom(&'a Path),
+    /// From `out`'s saved step and Adam state.
+    Resume,
+}
+
 /// Trains F on `tuples` (and `reals`, with `cfg.real_weight`) for generator `g` (identity
 /// `generator_id`), writing `out` (atomically, with its Adam state) every `eval_interval`
-/// steps and at the end; with `resume`, continues from `out`'s saved step and Adam state.
-/// `lite0` holds EfficientNet-Lite0's weights for that backbone.
+/// steps and at the end, from `start`. `lite0` holds EfficientNet-Lite0's weights for that
+/// backbone.
 #[allow(clippy::too_many_arguments)]
 pub fn train(
     g: &Generator,
@@ -191,13 +205,14 @@ pub fn train(
     lite0: Option<Vec<(String, Tensor)>>,
     cfg: &InitConfig,
     out: &Path,
-    resume: bool,
+    start: Start,
     progress: &mut dyn FnMut(TrainProgress),
 ) -> Result<(Initialiser, Vec<InitEval>)> {
+    let resume = matches!(start, Start::Resume);
     cfg.validate()?;
     let (_, device) = g.kind_device();
     let app_dim = if cfg.appearance_weight > 0.0 { tuples.appearance_raw.size()[1] } else { 0 };
-    let (init, mut adam, start) = start_or_resume(g, generator_id, app_dim, lite0, cfg, out, resume)?;
+    let (init, mut adam, start) = start_or_resume(g, generator_id, app_dim, lite0, cfg, out, start)?;
     let reals = reals.filter(|_| cfg.real_weight > 0.0);
     let n_train = cfg.count - cfg.held_out;
     let n_real = reals.map_or(0, |r| (r.images.size()[0] - cfg.real_held_out).max(0));
@@ -208,8 +223,10 @@ pub fn train(
             reals.map_or(0, |r| r.images.size()[0])
         )));
     }
-    let x = Inputs::of(&init, &tuples.images, &mut |e| progress(TrainProgress::Features(e)))?;
-    let xr = reals.map(|r| Inputs::of(&init, &r.images, &mut |e| progress(TrainProgress::Features(e)))).transpose()?;
+    let x = Inputs::of(&init, &tuples.images, cfg.head_only, &mut |e| progress(TrainProgress::Features(e)))?;
+    let xr = reals
+        .map(|r| Inputs::of(&init, &r.images, cfg.head_only, &mut |e| progress(TrainProgress::Features(e))))
+        .transpose()?;
     // The frozen features' standardisation, from the training rows alone (a resumed run keeps
     // the one it saved).
     if !resume {
@@ -276,13 +293,16 @@ fn start_or_resume(
     lite0: Option<Vec<(String, Tensor)>>,
     cfg: &InitConfig,
     out: &Path,
-    resume: bool,
+    start: Start,
 ) -> Result<(Initialiser, Adam, i64)> {
     let (_, device) = g.kind_device();
-    if !resume {
+    if let Start::Fresh | Start::WarmFrom(_) = start {
         let hidden = g.cfg.mapping_hidden_dim as i64;
         let init = Initialiser::new(cfg.backbone, device, hidden, app_dim, cfg.resolution, lite0)?;
         init.reinitialise(cfg.seed);
+        if let Start::WarmFrom(from) = start {
+            init.copy_weights_from(from)?;
+        }
         let adam = Adam::new(&init.vs, 0.9, 0.999, 1e-8);
         return Ok((init, adam, 0));
     }
@@ -301,10 +321,11 @@ fn start_or_resume(
     Ok((init, adam, h.step))
 }
 
-/// Sets a frozen backbone's feature standardisation from the training rows (the first
-/// `n_train` tuples and `n_real` real images); nothing for ResNet-34.
+/// Sets Lite0's feature standardisation from the training rows (the first `n_train` tuples
+/// and `n_real` real images); nothing for ResNet-34.
 fn standardise(init: &Initialiser, x: &Inputs, xr: Option<&Inputs>, n_train: i64, n_real: i64) {
-    let Inputs::Features(f) = x else { return };
+    // ResNet-34's features, frozen for a head-only training, are what its head was trained on.
+    let (Inputs::Features(f), Some(_)) = (x, &init.lite0) else { return };
     let mut rows = vec![f.narrow(0, 0, n_train)];
     if let Some(Inputs::Features(fr)) = xr {
         rows.push(fr.narrow(0, 0, n_real));
