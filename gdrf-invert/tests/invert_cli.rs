@@ -236,6 +236,20 @@ fn the_initialiser_trains_ships_starts_inversions_by_default_and_is_refused_by_a
     fails(&["train-init", "--generator", gen, "--out", i, "--steps", "6"], &["--resume"]);
     ok(&as_args(&small("6", &["--resume"])));
     assert_eq!(json_at(&tmp.path("init.safetensors.json"))["evaluations"].as_array().unwrap().len(), 3);
+    // --head-only needs a start to keep; with --warm-from it starts from the shipped file,
+    // trains the head alone and says so, in its log and its report.
+    let warm = tmp.path("warm.safetensors");
+    let w = warm.to_str().unwrap();
+    fails(&["train-init", "--generator", gen, "--out", w, "--head-only"], &["--head-only", "--warm-from"]);
+    assert!(!warm.exists(), "nothing written for a refused flag");
+    let mut args = small("2", &["--warm-from", shipped.to_str().unwrap(), "--head-only"]);
+    args[4] = w.to_string(); // --out
+    let said = ok(&as_args(&args));
+    assert!(said.contains("ResNet-34's head, its backbone kept"), "{said}");
+    assert!(said.contains("starting from the weights of"), "{said}");
+    let r = json_at(&tmp.path("warm.safetensors.json"));
+    assert!(r["warm_from"].as_str().unwrap().ends_with("model/initialiser.safetensors"), "{r}");
+    assert_eq!(r["config"]["head_only"], true);
 
     let m = load_generator(&generator, Device::Cpu, Kind::Float).unwrap();
     let id = generator_id(&m.vs, &m.generator);
