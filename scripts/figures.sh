@@ -3,6 +3,7 @@
 # `scripts/campaign.sh ship`, with the main command's settings (scripts/demo.sh):
 #   models/chairs-campaign/turntable-64.png     seeds 0–5 in rows, 4 views (64², 12 + 12 samples)
 #   models/chairs-campaign/swap-matrix-64.png   shape of seed i in row i, appearance of seed j in column j
+#   docs/images/turntable-128-chairs-campaign.png  the same seeds and views at 128², 24 + 24 samples
 #   docs/images/orbit-chairs-campaign.gif       seed 0's shape with seed 2's appearance, 24 views
 #   docs/images/eval-chairs-campaign.png        the seed-0 evaluation report at 64² (500 images,
 #                                               a 16 × 16 swap matrix: the curve's settings)
@@ -36,6 +37,9 @@ place() { cp "$1" "$2.tmp" && mv -f "$2.tmp" "$2"; }
   --no-jitter --out "$dir/turntable-64.png"
 "$edit" matrix --checkpoint "$model" --sources seed:0,seed:1,seed:2,seed:3 --resolution 64 --samples 12 \
   --yaw 30 --out "$dir/swap-matrix-64.png"
+# Above where it learned: 128², twice the samples per ray.
+"$edit" render --checkpoint "$model" --seeds 0,1,2,3,4,5 --views 4 --resolution 128 --samples 24 \
+  --no-jitter --out docs/images/turntable-128-chairs-campaign.png
 "$edit" swap --checkpoint "$model" --shape-from seed:0 --appearance-from seed:2 --orbit 24 --resolution 64 \
   --samples 12 --out "$tmp/orbit" --force
 place "$tmp/orbit/sequence.gif" docs/images/orbit-chairs-campaign.gif
