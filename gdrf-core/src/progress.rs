@@ -44,21 +44,50 @@ impl<'a> Counter<'a> {
 }
 
 #[cfg(feature = "cli")]
-pub use bar::{bar, follow};
+pub use bar::{bar, follow, set_quiet, without_quiet};
 
 #[cfg(feature = "cli")]
 mod bar {
     use super::Event;
     use indicatif::{ProgressBar, ProgressStyle};
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    /// Every binary's `--quiet`, set once from its command line, so that no subcommand and
+    /// no library job can draw a bar the user turned off.
+    static QUIET: AtomicBool = AtomicBool::new(false);
+
+    /// Hides every bar made from now on (`--quiet`).
+    pub fn set_quiet(quiet: bool) {
+        QUIET.store(quiet, Ordering::Relaxed);
+    }
 
     /// A bar of `total` `unit`s: its prefix names the task, its message (set by the caller:
-    /// a loss, a step's numbers) comes last. Hidden with `quiet`.
-    pub fn bar(total: u64, unit: &str, quiet: bool) -> ProgressBar {
-        let b = if quiet { ProgressBar::hidden() } else { ProgressBar::new(total) };
+    /// a loss, a step's numbers) comes last. Hidden with `hidden` (a rank that does not
+    /// report) or after [`set_quiet`].
+    pub fn bar(total: u64, unit: &str, hidden: bool) -> ProgressBar {
+        let b = if hidden || QUIET.load(Ordering::Relaxed) { ProgressBar::hidden() } else { ProgressBar::new(total) };
         let template =
             format!("{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} | {{elapsed}} elapsed, eta {{eta}} {{msg}}");
         b.set_style(ProgressStyle::with_template(&template).expect("a valid template").progress_chars("=> "));
         b
+    }
+
+    /// The commands of a binary's command line, itself included, that do not take `--quiet`,
+    /// each as its words ("gdrf-train eval train-probe"): every binary's test that its
+    /// `--quiet` reaches every subcommand, present and future.
+    pub fn without_quiet(cmd: &mut clap::Command) -> Vec<String> {
+        fn walk(cmd: &clap::Command, path: &str, out: &mut Vec<String>) {
+            if !cmd.get_arguments().any(|a| a.get_long() == Some("quiet")) {
+                out.push(path.to_string());
+            }
+            for sub in cmd.get_subcommands().filter(|s| s.get_name() != "help") {
+                walk(sub, &format!("{path} {}", sub.get_name()), out);
+            }
+        }
+        cmd.build();
+        let mut out = Vec::new();
+        walk(cmd, cmd.get_name(), &mut out);
+        out
     }
 
     /// Shows `e` on `b`: the task as the prefix, `done` of `total`.

@@ -31,6 +31,10 @@ struct Cli {
     command: Option<Command>,
     #[command(flatten)]
     swap: swap::SwapArgs,
+    /// No progress bars, in this command and every subcommand (`render --quiet`), e.g. for
+    /// logs, as gdrf-train's and gdrf-invert's.
+    #[arg(long, global = true)]
+    quiet: bool,
 }
 
 #[derive(Subcommand)]
@@ -119,6 +123,7 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
+    gdrf_core::progress::set_quiet(cli.quiet);
     match cli.command {
         None => swap::swap(cli.swap),
         Some(Command::Render(a)) => render(a),
@@ -229,7 +234,14 @@ pub(crate) fn grid_note(grid: Option<gdrf_core::render::GridConfig>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::CommandFactory;
     use gdrf_core::edit::Source;
+
+    #[test]
+    fn every_subcommand_takes_quiet() {
+        assert_eq!(gdrf_core::progress::without_quiet(&mut Cli::command()), Vec::<String>::new());
+        assert!(Cli::try_parse_from(["gdrf-edit", "render", "--seeds", "0", "--quiet"]).unwrap().quiet);
+    }
 
     #[test]
     fn render_takes_the_samples_per_ray_as_steps_or_samples() {

@@ -49,6 +49,7 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
+    gdrf_core::progress::set_quiet(cli.invert.quiet);
     let result = match cli.command {
         Some(Command::TrainInit(a)) => command::train_init(&a),
         Some(Command::Bench(a)) => gdrf_core::bench::invert::run(&a).map(drop),
@@ -57,5 +58,16 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod quiet_tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    #[test]
+    fn every_subcommand_takes_quiet() {
+        assert_eq!(gdrf_core::progress::without_quiet(&mut Cli::command()), Vec::<String>::new());
     }
 }

@@ -246,6 +246,7 @@ struct PrepareArgs {
 
 fn main() {
     let cli = Cli::parse();
+    progress::set_quiet(cli.train.quiet);
     let usage = |message: &str| {
         eprintln!("error: {message}");
         std::process::exit(2);
@@ -501,4 +502,19 @@ fn prepare_cmd(a: PrepareArgs) -> Result<()> {
     }
     load_reporting(&data_cfg.path, &data_cfg.load_options(a.resolution, a.threads))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod quiet_tests {
+    use super::Cli;
+    use clap::{CommandFactory, Parser};
+
+    #[test]
+    fn every_subcommand_takes_quiet() {
+        assert_eq!(gdrf_core::progress::without_quiet(&mut Cli::command()), Vec::<String>::new());
+        // The flag after the subcommand, where a user adds it to an evaluation's command line.
+        let cli = Cli::try_parse_from(["gdrf-train", "eval", "--generator", "g.safetensors", "--quiet"]).unwrap();
+        assert!(cli.train.quiet);
+        assert!(!Cli::try_parse_from(["gdrf-train", "eval", "--generator", "g.safetensors"]).unwrap().train.quiet);
+    }
 }

@@ -47,9 +47,10 @@ pub struct TrainArgs {
     /// fresh. Sets the config's `init_generator`; the architectures must match.
     #[arg(long, value_name = "FILE", requires = "config", conflicts_with = "resume")]
     init_generator: Option<PathBuf>,
-    /// No progress bar (one line per logged step instead), e.g. for logs of background runs.
-    #[arg(long)]
-    quiet: bool,
+    /// No progress bars, in training (one line per logged step instead) and in every
+    /// subcommand (`eval --quiet`, `dataset synth --quiet`), e.g. for logs of background runs.
+    #[arg(long, global = true)]
+    pub quiet: bool,
     /// Data-parallel training: start N worker processes on this machine, ranks of one run
     /// that split each stage's global batch equally (on CUDA each takes cuda:LOCAL_RANK; on
     /// the CPU the cores are divided among them). Workers also start from torchrun's

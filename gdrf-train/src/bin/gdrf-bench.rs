@@ -8,6 +8,9 @@ use gdrf_core::bench::{allreduce, losses, shared_grid, step, step_summary};
 struct Cli {
     #[command(subcommand)]
     command: Bench,
+    /// No progress bars (`gdrf-bench step --quiet`), as in the other binaries.
+    #[arg(long, global = true)]
+    quiet: bool,
 }
 
 #[derive(Subcommand)]
@@ -40,7 +43,9 @@ enum Bench {
 }
 
 fn main() {
-    let result = match Cli::parse().command {
+    let cli = Cli::parse();
+    gdrf_core::progress::set_quiet(cli.quiet);
+    let result = match cli.command {
         Bench::Losses(a) => losses::run(&a).map(drop),
         Bench::Step(a) => step::run(&a).map(drop),
         Bench::StepSummary(a) => step_summary::run(&a).map(drop),
@@ -50,5 +55,16 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod quiet_tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    #[test]
+    fn every_subcommand_takes_quiet() {
+        assert_eq!(gdrf_core::progress::without_quiet(&mut Cli::command()), Vec::<String>::new());
     }
 }

@@ -150,8 +150,9 @@ pub struct Options {
     /// Write into a folder that already holds files.
     #[arg(long)]
     pub force: bool,
-    /// No progress bar.
-    #[arg(long)]
+    /// No progress bars, in this command and every subcommand (`train-init --quiet`,
+    /// `bench --quiet`), e.g. for logs.
+    #[arg(long, global = true)]
     pub quiet: bool,
 }
 

@@ -108,9 +108,6 @@ pub struct TrainInitOptions {
     /// auto, cpu, cuda or cuda:N.
     #[arg(long, default_value = "auto")]
     pub device: String,
-    /// No progress bars.
-    #[arg(long)]
-    pub quiet: bool,
 }
 
 /// One `STEP:LR` of `--lr-drops`.
@@ -153,7 +150,7 @@ pub fn train_init(a: &TrainInitOptions) -> Result<()> {
         _ => None,
     };
     let bar = |len: i64, task: &'static str, unit: &str| {
-        let b = progress::bar(len as u64, unit, a.quiet);
+        let b = progress::bar(len as u64, unit, false);
         b.set_prefix(task);
         b
     };
