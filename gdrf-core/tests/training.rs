@@ -470,7 +470,7 @@ fn every_shipped_config_loads_and_validates() {
 /// discriminator input, what the 32² stages trained, fades nothing in), with the curve
 /// evaluated at 64², and from step 227 393 the same with larger patches, a quarter of them
 /// at native resolution (half from step 227 651); the pose terms on whole-chair patches at the weight that makes up
-/// for their count.
+/// for their count; from step 229 350 the opacity term.
 #[test]
 fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_batch_only() {
     use gdrf_core::train::config::Precision;
@@ -479,7 +479,7 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_bat
     let mut gpu = TrainConfig::load(&dir.join("chairs-campaign-gpu.toml")).unwrap();
     assert_eq!((cpu.precision, gpu.precision), (Precision::Auto, Precision::Float32));
     let batches = |c: &TrainConfig| c.stages.iter().map(|s| s.batch_size).collect::<Vec<_>>();
-    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8, 8, 8, 8, 8], vec![32, 32, 32, 32, 32]));
+    assert_eq!((batches(&cpu), batches(&gpu)), (vec![8; 6], vec![32; 6]));
     assert_eq!((cpu.optim.g_lr, cpu.optim.d_lr), (1e-4, 2e-4));
     assert_eq!(cpu.stages[1].from_step, 140_231);
     assert_eq!((cpu.learning_rates(140_230), cpu.learning_rates(140_231)), ((1e-4, 2e-4), (2.5e-5, 5e-5)));
@@ -537,6 +537,15 @@ fn the_campaign_gpu_config_differs_from_the_cpu_one_in_precision_threads_and_bat
         let w = cpu.loss_at(step).pose_weight;
         assert!((15.0 / share - w).abs() < tolerance, "step {step}: {w}");
     }
+    // From step 229 350 only the opacity term comes on (weight 1); nothing fades in, and the
+    // loss before that step has no opacity term.
+    let mut opaque = cpu.stages[5].clone();
+    assert_eq!((opaque.from_step, opaque.opacity_weight), (229_350, Some(1.0)));
+    (opaque.from_step, opaque.opacity_weight) = (cpu.stages[4].from_step, None);
+    assert_eq!(opaque, cpu.stages[4]);
+    assert_eq!([229_349, 229_350].map(|s| cpu.loss_at(s).opacity_weight), [0.0, 1.0]);
+    assert_eq!(cpu.loss_at(229_350).pose_weight, 57.1);
+    assert_eq!((cpu.switch_step(229_350), cpu.alpha(229_350)), (None, 1.0));
     // The CPU's run keeps to one thread (the other core's jobs would starve a second one).
     assert_eq!((cpu.threads, gpu.threads), (1, 0));
     (gpu.precision, gpu.threads) = (cpu.precision, cpu.threads);
