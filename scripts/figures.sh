@@ -77,5 +77,6 @@ EOF
 # The viewer's page as its browser test leaves it (needs chromium and chromedriver).
 GDRF_SCREENSHOT="$root/$tmp/serve.png" cargo test --quiet -p gdrf-edit --test browser the_page_turns >/dev/null
 place "$tmp/serve.png" docs/images/serve.png
-echo "figures: $dir/turntable-64.png, $dir/swap-matrix-64.png, docs/images/{orbit,eval,invert,invert-orbit}-chairs-campaign.*, docs/images/serve.png"
+echo "figures: $dir/turntable-64.png, $dir/swap-matrix-64.png, docs/images/turntable-128-chairs-campaign.png,"
+echo "         docs/images/{orbit,eval,invert,invert-orbit}-chairs-campaign.*, docs/images/serve.png"
 echo "         the inversion's PSNR and time: $tmp/invert/invert.json"

@@ -134,13 +134,64 @@ where
         mesh(&mut c, false, None)?;
         return note(if pts.is_empty() { "no data" } else { "range too large to plot" });
     }
+    // The legend's size as a share of the plot area (plotters' box: a 22 px swatch, the
+    // widest name, a row of text a series, margins), to find the corner where it hides least.
+    let widest = p.series.iter().map(|s| text_width(&s.name, TEXT)).collect::<Result<Vec<_>>>()?;
+    let plot = ((w as f64 - 60.0).max(1.0), (h as f64 - TITLE.px - TEXT.px - 30.0).max(1.0));
+    let legend = (
+        (widest.into_iter().max().unwrap_or(0) as f64 + 40.0) / plot.0,
+        (p.series.len() as f64 * (TEXT.px + 6.0) + 12.0) / plot.1,
+    );
+    let axis_y = |v: f64| if log_axis { v.log10() } else { v };
+    let span = (x, if log_axis { ly } else { y });
+    let corner = legend_corner(p, span, axis_y, legend);
     if log_axis {
         let c = chart.build_cartesian_2d(x.0..x.1, (y.0..y.1).log_scale()).map_err(drawing)?;
-        curves(c, p, y)
+        curves(c, p, y, corner)
     } else {
         let c = chart.build_cartesian_2d(x.0..x.1, y.0..y.1).map_err(drawing)?;
-        curves(c, p, y)
+        curves(c, p, y, corner)
     }
+}
+
+/// The corner whose legend-sized box (`size`, shares of the plot's width and height) covers
+/// the least of the curves, walked along each segment so that a line crossing the box counts
+/// as well as its points: the legend is drawn last, on white, and hides what lies under it.
+/// Ties go to the upper right, where a plot with room there keeps it. `span` is the axes'
+/// ranges, y as the axis draws it (`axis_y`: log10 on a log axis).
+fn legend_corner(
+    p: &Panel,
+    span: ((f64, f64), (f64, f64)),
+    axis_y: impl Fn(f64) -> f64,
+    size: (f64, f64),
+) -> SeriesLabelPosition {
+    let ((x0, x1), (y0, y1)) = span;
+    let at = |(x, y): (f64, f64)| ((x - x0) / (x1 - x0), (axis_y(y) - y0) / (y1 - y0));
+    let mut walked = Vec::new();
+    for s in &p.series {
+        for run in runs(s, p.log_y) {
+            let run: Vec<(f64, f64)> = run.into_iter().map(at).collect();
+            walked.extend(run.first().copied());
+            for w in run.windows(2) {
+                walked.extend((1..=16).map(|k| {
+                    let t = k as f64 / 16.0;
+                    (w[0].0 + t * (w[1].0 - w[0].0), w[0].1 + t * (w[1].1 - w[0].1))
+                }));
+            }
+        }
+    }
+    let (right, upper) = (1.0 - size.0, 1.0 - size.1);
+    let corners = [
+        (SeriesLabelPosition::UpperRight, (right, 1.0), (upper, 1.0)),
+        (SeriesLabelPosition::UpperLeft, (0.0, size.0), (upper, 1.0)),
+        (SeriesLabelPosition::LowerRight, (right, 1.0), (0.0, size.1)),
+        (SeriesLabelPosition::LowerLeft, (0.0, size.0), (0.0, size.1)),
+    ];
+    let covered = |(xs, ys): ((f64, f64), (f64, f64))| {
+        walked.iter().filter(|q| (xs.0..=xs.1).contains(&q.0) && (ys.0..=ys.1).contains(&q.1)).count()
+    };
+    // min_by_key keeps the first of equals: the upper right.
+    corners.into_iter().min_by_key(|&(_, xs, ys)| covered((xs, ys))).map(|c| c.0).expect("four corners")
 }
 
 /// Grid, axes and compact tick labels ([`fmt_num`]).
@@ -176,6 +227,7 @@ fn curves<'a, DB: DrawingBackend + 'a, Y>(
     mut c: ChartContext<'a, DB, Cartesian2d<RangedCoordf64, Y>>,
     p: &Panel,
     y: (f64, f64),
+    corner: SeriesLabelPosition,
 ) -> Result<()>
 where
     DB::ErrorType: 'static,
@@ -205,9 +257,10 @@ where
         c.draw_series(lone).map_err(drawing)?;
     }
     if !p.series.is_empty() {
-        // Last, on a white box, so curves never hide the names.
+        // Last, on a white box, so curves never hide the names; in the corner where it hides
+        // the least of them.
         c.configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
+            .position(corner)
             .legend_area_size(22)
             .margin(6)
             .background_style(WHITE)
@@ -372,6 +425,21 @@ mod tests {
         assert!(left.1 > right.1 + 100, "{left:?} {right:?}");
         // Text (title, ticks, legend) is drawn in ink, antialiased: dark pixels.
         assert!(img.pixels().filter(|c| c.0.iter().all(|&v| v < 100)).count() > 100);
+    }
+
+    #[test]
+    fn the_legend_goes_to_the_corner_it_hides_least() {
+        let rising = panel(vec![series("psnr", vec![(0.0, 0.0), (10.0, 10.0)])], false);
+        let span = ((0.0, 10.0), (0.0, 10.0));
+        let at = |p: &Panel| legend_corner(p, span, |v| v, (0.3, 0.2));
+        // A rising curve ends in the upper right and starts in the lower left.
+        assert!(matches!(at(&rising), SeriesLabelPosition::UpperLeft));
+        // A falling one, from the upper left: the upper right is free again.
+        let falling = panel(vec![series("loss", vec![(0.0, 10.0), (10.0, 0.0)])], false);
+        assert!(matches!(at(&falling), SeriesLabelPosition::UpperRight));
+        // Two points far apart whose segment crosses the upper right still count there.
+        let crossing = panel(vec![series("x", vec![(0.0, 9.5), (10.0, 9.5), (10.0, 0.0)])], false);
+        assert!(matches!(at(&crossing), SeriesLabelPosition::LowerLeft));
     }
 
     #[test]
