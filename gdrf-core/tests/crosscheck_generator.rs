@@ -1,5 +1,6 @@
-//! Cross-check of the generator, cameras, samplers, integration and renderer against the
-//! PyTorch reference (scripts/reference/), in float32 and float64, outputs and gradients.
+//! Cross-check of the generator, cameras, samplers, integration, renderer and the inversion's
+//! silhouette term against the PyTorch reference (scripts/reference/), in float32 and
+//! float64, outputs and gradients.
 //!
 //! The reference model is created in Python with the release's parameter names and goes
 //! through scripts/convert_official_checkpoint.py, so this also tests the converter.
@@ -9,6 +10,7 @@ use common::{read_tensors, run_python, Report, TempDir};
 use gdrf_core::camera::{Poses, Rays};
 use gdrf_core::checkpoint::load_generator;
 use gdrf_core::field::generator::{FieldOptions, Truncation};
+use gdrf_core::invert::{render_with_opacity, silhouette_loss};
 use gdrf_core::nn::mapping::seeded_randn;
 use gdrf_core::render::sampler::{importance_depths, stratified_depths};
 use gdrf_core::render::{composite, CompositeOptions, Noise, Renderer};
@@ -166,6 +168,24 @@ fn crosscheck(dtype: &str, kind: Kind, tol: f64) {
             rep.check("∂/∂w_s", &grads[0], case.want("grad_w_s"));
             rep.check("∂/∂γ_a", &grads[1], case.want("grad_gamma_a"));
             rep.check("∂/∂β_a", &grads[2], case.want("grad_beta_a"));
+            // The inversion's silhouette term on the first image, through the render with
+            // gradients to w_s and the pose.
+            let w_s = g.shape_w(&z_s.narrow(0, 0, 1)).detach().set_requires_grad(true);
+            let a = g.appearance_from_z(&z_a.narrow(0, 0, 1), None);
+            let lat = Latents { shape: g.shape_from_w(&w_s, None), appearance: a };
+            let pitch = case.get("render_pitch").narrow(0, 0, 1).detach().set_requires_grad(true);
+            let yaw = case.get("render_yaw").narrow(0, 0, 1).detach().set_requires_grad(true);
+            let poses = Poses { pitch: pitch.shallow_clone(), yaw: yaw.shallow_clone() };
+            let first = |name: &str| Some(case.get(&format!("render{res}_{name}")).narrow(0, 0, 1));
+            let noise1 = Noise { jitter: first("jitter"), importance: first("imp") };
+            let (_, opacity) = render_with_opacity(&renderer, &lat, &poses, res, &noise1, None, None).unwrap();
+            rep.check("silhouette: rendered opacity", &opacity, case.want("sil_opacity"));
+            let sil = silhouette_loss(&opacity, case.get("sil_target"));
+            rep.check("silhouette term", &sil, case.want("sil_loss"));
+            let grads = Tensor::run_backward(&[sil], &[&w_s, &pitch, &yaw], false, false);
+            rep.check("silhouette ∂/∂w_s", &grads[0], case.want("grad_sil_w_s"));
+            rep.check("silhouette ∂/∂pitch", &grads[1], case.want("grad_sil_pitch"));
+            rep.check("silhouette ∂/∂yaw", &grads[2], case.want("grad_sil_yaw"));
         } else {
             let cam = CameraConfig { lock_view_dependence: true, ..camera.clone() };
             let cfg = RenderConfig { force_last_white: true, ..config.clone() };

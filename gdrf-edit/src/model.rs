@@ -103,6 +103,7 @@ pub fn open(m: &ModelArgs) -> Result<(Model, usize)> {
     model.photo = PhotoSettings {
         pose: m.photo_pose.as_deref().map(|p| gdrf_core::invert::parse_pose_degrees(p, "--photo-pose")).transpose()?,
         init: m.photo_init.clone().unwrap_or_default(),
+        framing: checkpoint.as_deref().map(gdrf_core::invert::framing::Framing::beside).transpose()?.flatten(),
         generator_path: checkpoint.clone(),
         cfg: gdrf_core::invert::InvertConfig { steps: m.photo_steps, ..model.photo.cfg.clone() },
     };
@@ -117,6 +118,9 @@ pub struct PhotoSettings {
     pub init: InitChoice,
     /// The generator's file, beside which its initialiser lies (None: a random generator).
     pub generator_path: Option<PathBuf>,
+    /// Where the training images' objects sit (framing.json beside the generator): photos
+    /// are framed as `gdrf-invert PHOTO` frames them.
+    pub framing: Option<gdrf_core::invert::framing::Framing>,
     pub cfg: gdrf_core::invert::InvertConfig,
 }
 
@@ -154,10 +158,11 @@ pub fn invert_photo(
         ph.cfg.samples,
         chosen.said
     );
-    let (f, from) = gdrf_core::invert::features_of_photo(
+    let (f, from, photo) = gdrf_core::invert::features_of_photo(
         &model.generator,
         &model.camera,
         p,
+        ph.framing.as_ref(),
         ph.pose,
         chosen.init.as_ref(),
         RefinePose::Auto,
@@ -165,6 +170,10 @@ pub fn invert_photo(
         progress,
     )
     .with_context(|| format!("{flag} {}", p.display()))?;
+    eprintln!("{flag}: {}", photo.describe());
+    for w in &photo.warnings {
+        eprintln!("{flag}: warning: {w}");
+    }
     if let Some(pose) = f.pose {
         eprintln!("{flag}: {}", choice::describe_pose(pose, from, RefinePose::Auto.resolve(from)));
     }

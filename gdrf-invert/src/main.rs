@@ -2,14 +2,17 @@
 //! feature file gdrf-edit reads. The commands live in gdrf_core::invert::command and
 //! gdrf_core::bench::invert.
 use clap::Parser;
-use gdrf_core::invert::command::{self, Options, TrainInitOptions};
+use gdrf_core::invert::command::{self, FramingOptions, Options, TrainInitOptions};
 
 /// Invert a photo into GDRF shape and appearance features.
 ///
-/// `gdrf-invert photo.png` starts from what the shipped initialiser reads in the photo
-/// (its shape feature w_s and its camera pose; paper §5.2), then renders the generator at
-/// that pose and optimises w_s, the appearance modulation (γ_a, β_a) and the pose with Adam
-/// on MSE + a perceptual distance + priors that keep them near their start (paper §5).
+/// `gdrf-invert photo.png` finds the object in the photo (its alpha channel, a uniform
+/// background on its border, or --mask) and frames it as the generator's training images
+/// frame theirs (framing.json beside the generator; see --fit), then starts from what the
+/// shipped initialiser reads in it (its shape feature w_s and its camera pose; paper §5.2),
+/// renders the generator at that pose and optimises w_s, the appearance modulation
+/// (γ_a, β_a) and the pose with Adam on MSE + a perceptual distance + the silhouette's
+/// match + priors that keep them near their start (paper §5, and the silhouette term).
 /// `--pose` gives the pose instead, `--init none` starts from the mean code, and
 /// `--steps 2000` is the paper's schedule (see --steps). Writes into --out:
 /// features.safetensors (for `gdrf-edit --shape-from/--appearance-from`), input.png (the
@@ -18,7 +21,8 @@ use gdrf_core::invert::command::{self, Options, TrainInitOptions};
 /// where the start and the pose came from, timings and the loss of every step).
 ///
 /// `gdrf-invert train-init` trains the initialiser for a generator; `gdrf-invert bench`
-/// measures inversion on held-out objects.
+/// measures inversion on held-out objects; `gdrf-invert framing` measures where a
+/// dataset's objects sit.
 #[derive(Parser)]
 #[command(version, about, long_about, args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct Cli {
@@ -45,6 +49,10 @@ enum Command {
     /// gdrf-invert's defaults and the paper's 2 000 steps. Writes JSON, a table, a plot and
     /// a figure.
     Bench(gdrf_core::bench::invert::Options),
+    /// Measure where the objects sit in a dataset's training images (the range of their
+    /// boxes' sizes and centres) and write it beside the generator as framing.json, which
+    /// `gdrf-invert PHOTO` uses to frame a photo's object as the generator saw its objects.
+    Framing(FramingOptions),
 }
 
 fn main() {
@@ -53,6 +61,7 @@ fn main() {
     let result = match cli.command {
         Some(Command::TrainInit(a)) => command::train_init(&a),
         Some(Command::Bench(a)) => gdrf_core::bench::invert::run(&a).map(drop),
+        Some(Command::Framing(a)) => command::framing(&a),
         None => command::run(&cli.invert),
     };
     if let Err(e) = result {

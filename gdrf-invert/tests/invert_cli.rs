@@ -26,6 +26,14 @@ fn ok(args: &[&str]) -> String {
     text(&o)
 }
 
+/// Runs gdrf-invert, which must succeed, and returns what it wrote to standard error (the
+/// lines that say what it does, before the optimisation).
+fn said_first(args: &[&str]) -> String {
+    let o = gdrf_invert(args);
+    assert!(o.status.success(), "gdrf-invert {args:?} failed:\n{}", text(&o));
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
 fn as_args(v: &[String]) -> Vec<&str> {
     v.iter().map(String::as_str).collect()
 }
@@ -69,6 +77,122 @@ fn bench_dataset(dir: &TempDir) -> std::path::PathBuf {
     };
     gdrf_core::data::synth::generate(&data, &opts, 2, &|_| {}).unwrap();
     data
+}
+
+/// The procedural chair of [`photo_in`], opaque on a 96 × 80 grey canvas at (6, 40): small
+/// and off-centre, as no training image has it, with no alpha channel.
+fn grey_photo_in(dir: &TempDir) -> String {
+    let chair = image::open(photo_in(dir)).unwrap().to_rgb8();
+    let mut canvas = image::RgbImage::from_pixel(96, 80, image::Rgb([120, 120, 130]));
+    for (x, y, p) in chair.enumerate_pixels() {
+        // The chair's white background becomes the canvas's grey.
+        if p.0.iter().any(|&c| c < 250) {
+            canvas.put_pixel(6 + x, 40 + y, *p);
+        }
+    }
+    let path = dir.path("grey.png");
+    canvas.save(&path).unwrap();
+    path.display().to_string()
+}
+
+#[test]
+fn a_photo_is_framed_and_its_silhouette_is_matched() {
+    let tmp = TempDir::new("invert-frame").unwrap();
+    let photo = grey_photo_in(&tmp);
+    let run = |name: &str, extra: &[&str]| -> (String, serde_json::Value) {
+        let out = tmp.path(name);
+        let mut args = vec![photo.as_str(), "--steps", "2", "--resolution", "16", "--samples", "4", "--orbit", "0"];
+        args.extend(["--quiet", "--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        let said = said_first(&args);
+        let report = serde_json::from_str(&std::fs::read_to_string(out.join("invert.json")).unwrap()).unwrap();
+        (said, report)
+    };
+    // As written: the grey background is found on the border and becomes white, the chair is
+    // framed as the shipped model's training images frame theirs (framing.json beside it),
+    // and its silhouette is matched; the first line says so.
+    let weight = format!("silhouette term weight {}", gdrf_core::invert::InvertConfig::SILHOUETTE_WEIGHT);
+    let (said, r) = run("auto", &[]);
+    let first = said.lines().next().unwrap();
+    assert!(first.starts_with("photo 96×80: silhouette from the uniform background (RGB 120, 120, 130)"), "{said}");
+    assert!(first.contains("framed as in the training images"), "{said}");
+    assert!(said.contains(&weight), "{said}");
+    let fr = &r["framing"];
+    assert_eq!((fr["reframed"].as_bool(), fr["silhouette_from"]["background"].is_array()), (Some(true), true), "{r}");
+    assert!(fr["framing_file"].as_str().unwrap().ends_with("models/chairs-campaign/framing.json"), "{r}");
+    let history = r["history"].as_array().unwrap();
+    assert!(history.iter().all(|l| l["silhouette"].as_f64().unwrap() > 0.0), "{r}");
+    // The framed photo has a white background and the chair inside its borders.
+    let input = image::open(tmp.path("auto").join("input.png")).unwrap().to_rgb8();
+    assert_eq!(input.get_pixel(0, 0).0, [255, 255, 255]);
+    // The window holds the whole object: its box lies inside it.
+    let (b, w) = (&fr["object_box"], &fr["window"]);
+    let (x, y, side) = (w["x"].as_f64().unwrap(), w["y"].as_f64().unwrap(), w["side"].as_f64().unwrap());
+    let b: Vec<f64> = b.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    assert!(b[0] >= x && b[1] >= y && b[2] <= x + side && b[3] <= y + side, "{r}");
+
+    // --fit crop keeps the centred square (the silhouette still found and matched) and
+    // --silhouette-weight 0 turns the term off.
+    let (said, r) = run("crop", &["--fit", "crop", "--silhouette-weight", "0"]);
+    assert!(said.contains("silhouette term off"), "{said}");
+    assert_eq!(r["framing"]["window"], serde_json::json!({"x": 8, "y": 0, "side": 80}), "{r}");
+    assert_eq!(r["framing"]["reframed"], false);
+    assert!(r["history"].as_array().unwrap().iter().all(|l| l["silhouette"] == 0.0), "{r}");
+
+    // A border of many colours: no silhouette, a warning that names --mask; a mask finds it.
+    let noisy = tmp.path("noisy.png");
+    let mut img = image::open(&photo).unwrap().to_rgb8();
+    for (x, y, p) in img.enumerate_pixels_mut() {
+        if (x + y) % 2 == 0 {
+            *p = image::Rgb([20, 200, 60]);
+        }
+    }
+    img.save(&noisy).unwrap();
+    let noisy_s = noisy.to_str().unwrap();
+    let out = tmp.path("noisy-out");
+    let said = said_first(&[
+        noisy_s,
+        "--steps",
+        "1",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--orbit",
+        "0",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(said.contains("no silhouette") && said.contains("warning:") && said.contains("--mask"), "{said}");
+    assert!(said.contains("no silhouette term"), "{said}");
+    let mut mask = image::GrayImage::new(96, 80);
+    for y in 40..72 {
+        for x in 6..38 {
+            mask.put_pixel(x, y, image::Luma([255]));
+        }
+    }
+    mask.save(tmp.path("mask.png")).unwrap();
+    let out = tmp.path("masked");
+    let m = tmp.path("mask.png");
+    let said = said_first(&[
+        noisy_s,
+        "--mask",
+        m.to_str().unwrap(),
+        "--steps",
+        "1",
+        "--resolution",
+        "16",
+        "--samples",
+        "4",
+        "--orbit",
+        "0",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(said.starts_with("photo 96×80: silhouette from --mask"), "{said}");
+    assert!(said.contains(&weight), "{said}");
 }
 
 #[test]
@@ -372,6 +496,35 @@ fn the_initialiser_trains_ships_starts_inversions_by_default_and_is_refused_by_a
     let fig = image::open(tmp.path("bench-figure.png")).unwrap();
     assert_eq!((fig.width(), fig.height()), (6 * 16 * 3, 2 * 16 * 3));
     assert!(std::fs::read_to_string(stem.with_extension("md")).unwrap().contains("EfficientNet-Lite0"));
+
+    // --restyle: the same objects photographed out of the house style, the photos written
+    // beside the stem (the same bytes for the same seed), and a row that inverts them as
+    // they are.
+    let restyled = |name: &str| -> (String, std::path::PathBuf) {
+        let stem = tmp.path(name);
+        let mut args = vec!["bench", "--generator", gen, "--dataset", d, "--samples", "4", "--skip", "0"];
+        args.extend(["--images", "2", "--views", "2", "--steps", "2", "--resolution", "16", "--only", "gdrf-invert"]);
+        args.extend(["--restyle", "3", "--figure-objects", "0", "--out", stem.to_str().unwrap()]);
+        (ok(&args), stem)
+    };
+    let (said, stem) = restyled("restyled");
+    assert_eq!(said.matches("done: ").count(), 3, "{said}");
+    assert!(said.contains("done: gdrf-invert, the photo as it is"), "{said}");
+    let json = json_at(&stem.with_extension("json"));
+    assert_eq!(json["restyle"], 3);
+    let photos = |dir: &str| -> Vec<Vec<u8>> {
+        let mut files: Vec<_> = std::fs::read_dir(tmp.path(dir)).unwrap().map(|e| e.unwrap().path()).collect();
+        files.sort();
+        files.iter().map(|f| std::fs::read(f).unwrap()).collect()
+    };
+    let first = photos("restyled-photos");
+    assert_eq!(first.len(), 2);
+    for bytes in &first {
+        let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Jpeg).unwrap();
+        assert!(!img.color().has_alpha() && img.width().min(img.height()) >= 96, "{:?}", img.color());
+    }
+    restyled("again");
+    assert_eq!(photos("again-photos"), first, "the same seed draws the same photos");
 }
 
 #[test]

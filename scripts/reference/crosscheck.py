@@ -126,6 +126,22 @@ def generator_case(out, dtype, seed):
             g = torch.autograd.grad((img2 * t[f"render{res}_probe"]).sum(), [w_s, gamma_a, beta_a])
             e["grad_w_s"], e["grad_gamma_a"], e["grad_beta_a"] = g
             e["render_features_rgb"] = img2.detach()
+            # The inversion's silhouette term on the first image: mean (O − S)², O the
+            # object's share of each pixel (every weight but the far sample's), against a
+            # random target; gradients w.r.t. w_s and the pose (pitch, yaw) as leaves.
+            t["sil_target"] = rnd(1, 1, res, res)
+            w_s1 = M_s.features(t["z_s"][:1]).detach().requires_grad_(True)
+            pitch1 = t["render_pitch"][:1].clone().requires_grad_(True)
+            yaw1 = t["render_yaw"][:1].clone().requires_grad_(True)
+            fa1, pa1 = M_a(t["z_a"][:1])
+            *_, smp = ref.render(gen, M_s.head(w_s1), (fa1.detach(), pa1.detach()), pitch1, yaw1, res, common["fov"],
+                                 common["ray_start"], common["ray_end"], n, t[f"render{res}_jitter"][:1],
+                                 t[f"render{res}_imp"][:1], return_samples=True)
+            share = smp["weights"][..., :-1, :].sum(-2).reshape(1, 1, res, res)
+            sil = ((share - t["sil_target"]) ** 2).mean()
+            g = torch.autograd.grad(sil, [w_s1, pitch1, yaw1])
+            e["sil_opacity"], e["sil_loss"] = share.detach(), sil.detach()
+            e["grad_sil_w_s"], e["grad_sil_pitch"], e["grad_sil_yaw"] = g
         # Truncated render (ψ) with locked view dependence at the second resolution.
         if k == 1:
             with torch.no_grad():

@@ -33,6 +33,29 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// A pixel whose silhouette (alpha) exceeds this belongs to the object's box.
+pub const BOX_THRESHOLD: f32 = 0.5;
+
+/// An object's box in pixels: `[x0, y0, x1, y1]`, edges (x1 − x0 pixels wide).
+pub type ObjectBox = [f64; 4];
+
+/// The box of the pixels of `alpha` (`w × h`, row-major) above [`BOX_THRESHOLD`], `None`
+/// when there are none.
+pub fn object_box(alpha: &[f32], w: usize, h: usize) -> Option<ObjectBox> {
+    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            if alpha[y * w + x] > BOX_THRESHOLD {
+                x0 = x0.min(x);
+                y0 = y0.min(y);
+                x1 = x1.max(x + 1);
+                y1 = y1.max(y + 1);
+            }
+        }
+    }
+    (x0 != usize::MAX).then(|| [x0 as f64, y0 as f64, x1 as f64, y1 as f64])
+}
+
 /// Decodes `path` and returns its pixels as `4 × res × res` bytes (channel-major, rows
 /// top to bottom): RGB composited on white, then alpha (255 throughout for an image
 /// without one).

@@ -19,6 +19,9 @@ pub struct InvertConfig {
     pub samples: usize,
     pub mse_weight: f64,
     pub perceptual_weight: f64,
+    /// Weight of mean (opacity − silhouette)² where the photo has a silhouette (alpha,
+    /// mask or a uniform background); 0 = off, as in the paper.
+    pub silhouette_weight: f64,
     /// Weight of mean (w_s − w_s⁰)².
     pub prior_shape: f64,
     /// Weight of mean (a − a⁰)² over the raw appearance (f, β).
@@ -66,6 +69,7 @@ impl Default for InvertConfig {
             samples: 24,
             mse_weight: 1.0,
             perceptual_weight: 1.0,
+            silhouette_weight: Self::SILHOUETTE_WEIGHT,
             prior_shape: 0.01,
             prior_appearance: 0.01,
             ray_fraction: 1.0,
@@ -91,6 +95,9 @@ impl InvertConfig {
     /// novel-view gain (docs/inversion.md), where a quarter of the rays at lr 0.03 (the
     /// defaults before an initialiser shipped) gained less per second.
     pub const PAPER_LR: f64 = 0.01;
+
+    /// The silhouette term's default weight (docs/inversion.md, "The photo's silhouette").
+    pub const SILHOUETTE_WEIGHT: f64 = 4.0;
 
     /// The defaults, rendered where the generator learned: the resolution and samples per
     /// ray of its last training step when its header records them (a model trained at 32²
@@ -129,6 +136,7 @@ impl InvertConfig {
         for (k, v) in [
             ("mse_weight", self.mse_weight),
             ("perceptual_weight", self.perceptual_weight),
+            ("silhouette_weight", self.silhouette_weight),
             ("prior_shape", self.prior_shape),
             ("prior_appearance", self.prior_appearance),
         ] {

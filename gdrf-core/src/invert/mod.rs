@@ -2,7 +2,7 @@
 //! (γ_a, β_a) that re-render a photo at its pose, found by Adam on
 //!
 //! ```text
-//! mse_weight · MSE(I, Î) + perceptual_weight · P(I, Î)
+//! mse_weight · MSE(I, Î) + perceptual_weight · P(I, Î) + silhouette_weight · mean (O − S)²
 //!   + prior_shape · mean (w_s − w_s⁰)² + prior_appearance · mean (a − a⁰)²
 //! ```
 //!
@@ -10,7 +10,10 @@
 //! Adam's step size means the same for γ and β, as the raw output is what the mapping
 //! network produces), and `P` the perceptual distance the caller supplies (real LPIPS, or
 //! the EfficientNet-Lite0 distance offline). The paper sums squares in its priors; means keep
-//! the weights independent of the network widths.
+//! the weights independent of the network widths. The silhouette term, where the photo has
+//! a silhouette `S` ([`photo::Photo::silhouette`]), matches the render's opacity `O` (the
+//! object's share of each pixel) to it: the paper has no such term. It reaches the pose too
+//! when the pose is refined.
 //!
 //! The speed options, each measured by `gdrf-invert bench`:
 //! - `ray_fraction < 1`: each step renders the whole image without gradients, re-renders a
@@ -24,6 +27,7 @@ pub mod choice;
 #[cfg(feature = "cli")]
 pub mod command;
 mod config;
+pub mod framing;
 pub mod init;
 pub mod photo;
 
@@ -138,6 +142,8 @@ pub struct StepLog {
     pub loss: f64,
     pub mse: f64,
     pub perceptual: f64,
+    /// The silhouette term, unweighted (0 without one).
+    pub silhouette: f64,
     pub prior: f64,
     /// Seconds spent in the optimisation's steps so far, this one included.
     pub seconds: f64,
@@ -181,8 +187,23 @@ pub fn render_at_poses(
     subset: Option<&Tensor>,
     grid: Option<&OccupancyGrid>,
 ) -> Result<Tensor> {
+    Ok(render_with_opacity(renderer, latents, poses, res, noise, subset, grid)?.0)
+}
+
+/// [`render_at_poses`]' image, and the object's share of each pixel `(1, 1, res, res)` in
+/// [0, 1] ([`crate::render::RenderedRays::object_share`]: the weights of every sample but
+/// the far one, which stands for the background), with gradients as the image has them.
+pub fn render_with_opacity(
+    renderer: &Renderer,
+    latents: &Latents,
+    poses: &Poses,
+    res: i64,
+    noise: &Noise,
+    subset: Option<&Tensor>,
+    grid: Option<&OccupancyGrid>,
+) -> Result<(Tensor, Tensor)> {
     let mut rays = Rays::from_poses(poses, res, renderer.camera.fov_deg);
-    let pixels = match grid {
+    let (pixels, share) = match grid {
         Some(grid) if grid.cfg.cells_only => {
             Grids::new(renderer).render_in_cells(latents, &rays, grid, noise, subset)?
         }
@@ -196,20 +217,39 @@ pub fn render_at_poses(
                 rays = rays.with_bounds(bounds);
             }
             match subset {
-                None => renderer.render_rays(latents, &rays, noise)?.pixel,
+                None => {
+                    let out = renderer.render_rays(latents, &rays, noise)?;
+                    let share = out.object_share();
+                    (out.pixel, share)
+                }
                 Some(idx) => {
                     // The whole image without gradients, then the subset again with them at
                     // the very same sample depths, spliced in.
                     let full = tch::no_grad(|| renderer.render_rays(latents, &rays, noise))?;
                     let z = full.z.index_select(1, idx);
                     let part = renderer.render_at_depths(latents, &rays.select_rays(idx), &z)?;
-                    full.pixel.detach().index_copy(1, idx, &part.pixel)
+                    (
+                        full.pixel.detach().index_copy(1, idx, &part.pixel),
+                        full.object_share().detach().index_copy(1, idx, &part.object_share()),
+                    )
                 }
             }
         }
     };
-    // (1, R, 3) in [0, 1] → (1, 3, res, res) in [−1, 1].
-    Ok(pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0)
+    // (1, R, 3) in [0, 1] → (1, 3, res, res) in [−1, 1]; (1, R, 1) → (1, 1, res, res).
+    let rgb = pixels.view([1, res, res, 3]).permute([0, 3, 1, 2]) * 2.0 - 1.0;
+    Ok((rgb, share.view([1, 1, res, res])))
+}
+
+/// The silhouette term: mean over pixels of (opacity − silhouette)², in float32 or wider,
+/// of `opacity` and `silhouette` of one shape (opacities of any precision).
+pub fn silhouette_loss(opacity: &Tensor, silhouette: &Tensor) -> Tensor {
+    let o = match opacity.kind() {
+        Kind::Half | Kind::BFloat16 => opacity.to_kind(Kind::Float),
+        _ => opacity.shallow_clone(),
+    };
+    let kind = o.kind();
+    (o - silhouette.to_kind(kind)).square().mean(kind)
 }
 
 /// Adam with torch's defaults (betas 0.9, 0.999, eps 1e-8) over the inversion's tensors.
@@ -244,6 +284,9 @@ pub struct Inverter<'a> {
     pose_param: Option<(Tensor, Adam)>,
     /// The photo at each render size used, and its prepared perceptual target.
     targets: std::collections::BTreeMap<i64, (Tensor, Option<Vec<Tensor>>)>,
+    /// The photo's silhouette at each render size used, where it has one and the
+    /// silhouette term is on ([`Inverter::with_silhouette`]).
+    silhouettes: Option<std::collections::BTreeMap<i64, Tensor>>,
     /// The occupancy grid of the shape (`cfg.grid` > 0) and the step it was built at.
     grid: Option<(usize, OccupancyGrid)>,
     best: f64,
@@ -315,6 +358,7 @@ impl<'a> Inverter<'a> {
             adam,
             pose_param,
             targets,
+            silhouettes: None,
             grid: None,
             best: f64::INFINITY,
             since_best: 0,
@@ -322,6 +366,22 @@ impl<'a> Inverter<'a> {
             seconds: 0.0,
             history: Vec::with_capacity(cfg.steps),
         })
+    }
+
+    /// Matches the rendered opacity to `silhouette: (1, 1, R, R)` in [0, 1] (the photo's,
+    /// [`photo::Photo::silhouette`]) with weight `silhouette_weight`: mean over pixels of
+    /// (opacity − silhouette)². Without it, or at weight 0, there is no such term.
+    pub fn with_silhouette(mut self, silhouette: Option<&Tensor>) -> Result<Self> {
+        let Some(s) = silhouette.filter(|_| self.cfg.silhouette_weight > 0.0) else {
+            return Ok(self);
+        };
+        let z = s.size();
+        if z.len() != 4 || z[0] != 1 || z[1] != 1 || z[2] != z[3] {
+            return Err(Error::Shape(format!("the silhouette must be (1, 1, R, R), got {z:?}")));
+        }
+        let s = s.to_kind(Kind::Float).to_device(self.w0.device());
+        self.silhouettes = Some(self.targets.keys().map(|&r| (r, resize(&s, r).clamp(0.0, 1.0))).collect());
+        Ok(self)
     }
 
     /// Whether the optimisation has ended (all steps, or early stop).
@@ -367,8 +427,12 @@ impl<'a> Inverter<'a> {
             self.grid = Some((step, Grids::new(&renderer).occupancy_grid(&shape, gc)?));
         }
         let grid = self.grid.as_ref().map(|(_, grid)| grid);
-        let img = render_at_poses(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;
+        let (img, opacity) = render_with_opacity(&renderer, &latents, &poses, res, &noise, subset.as_ref(), grid)?;
         let (target, features) = &self.targets[&res];
+        let silhouette = match &self.silhouettes {
+            Some(s) => silhouette_loss(&opacity, &s[&res]),
+            None => Tensor::zeros([], (Kind::Float, device)),
+        };
         let mse = (&img - target).square().mean(Kind::Float);
         let perc = match (self.perceptual, features) {
             (Some(pd), Some(f)) => (pd.to_target)(&img, f)?.mean(Kind::Float),
@@ -376,7 +440,7 @@ impl<'a> Inverter<'a> {
         };
         let prior = (&p[0] - &self.w0).square().mean(Kind::Float) * cfg.prior_shape
             + (&p[1] - &self.a0).square().mean(Kind::Float) * cfg.prior_appearance;
-        let loss = &mse * cfg.mse_weight + &perc * cfg.perceptual_weight + &prior;
+        let loss = &mse * cfg.mse_weight + &perc * cfg.perceptual_weight + &silhouette * cfg.silhouette_weight + &prior;
         let value = loss.double_value(&[]);
         if !value.is_finite() {
             return Err(Error::Invalid(format!(
@@ -399,6 +463,7 @@ impl<'a> Inverter<'a> {
             loss: value,
             mse: mse.double_value(&[]),
             perceptual: perc.double_value(&[]),
+            silhouette: silhouette.double_value(&[]),
             prior: prior.double_value(&[]),
             seconds: self.seconds,
         };
@@ -446,6 +511,22 @@ pub fn invert(
     progress: &mut dyn FnMut(&StepLog),
 ) -> Result<Inversion> {
     Inverter::new(g, camera, photo, start, cfg, perceptual)?.run(progress)
+}
+
+/// [`invert`] of a prepared photo: its image, and its silhouette where it has one
+/// ([`Inverter::with_silhouette`]).
+pub fn invert_photo(
+    g: &Generator,
+    camera: &CameraConfig,
+    photo: &photo::Photo,
+    start: &Start,
+    cfg: &InvertConfig,
+    perceptual: Option<&Perceptual>,
+    progress: &mut dyn FnMut(&StepLog),
+) -> Result<Inversion> {
+    Inverter::new(g, camera, &photo.rgb, start, cfg, perceptual)?
+        .with_silhouette(photo.silhouette.as_ref())?
+        .run(progress)
 }
 
 /// Where the pose of an inversion came from.
@@ -499,24 +580,28 @@ pub fn start_for_photo(
     Ok(PhotoStart { start, pose_from: from, predicted_pose })
 }
 
-/// A photo file as an editing source: loaded (centre-cropped, on white), inverted with `cfg`
-/// from [`start_for_photo`]'s start with `init`, the pose refined as `refine` says, with the
-/// EfficientNet-Lite0 perceptual distance when `cfg.perceptual_weight` is not 0, telling
-/// `progress` each optimisation step. Returns the features and where the pose came from.
+/// A photo file as an editing source: prepared as `gdrf-invert PHOTO` prepares it
+/// ([`photo::prepare_photo`]: its silhouette found, framed by `framing` where given),
+/// inverted with `cfg` from [`start_for_photo`]'s start with `init`, the pose refined as
+/// `refine` says, with the EfficientNet-Lite0 perceptual distance when
+/// `cfg.perceptual_weight` is not 0 and the photo's silhouette when it has one, telling
+/// `progress` each optimisation step. Returns the features, where the pose came from and
+/// the prepared photo (its [`photo::Photo::describe`] and warnings say what was done).
 #[allow(clippy::too_many_arguments)]
 pub fn features_of_photo(
     g: &Generator,
     camera: &CameraConfig,
     path: &std::path::Path,
+    framing: Option<&framing::Framing>,
     pose: Option<(f64, f64)>,
     init: Option<&init::Initialiser>,
     refine: choice::RefinePose,
     cfg: &InvertConfig,
     progress: &mut dyn FnMut(&StepLog),
-) -> Result<(Features, PoseFrom)> {
+) -> Result<(Features, PoseFrom, photo::Photo)> {
     let (_, device) = g.kind_device();
-    let photo = photo::load_photo(path, None, photo::Fit::Crop, cfg.resolution, device)?;
-    let started = start_for_photo(g, camera, &photo, pose, init)?;
+    let photo = photo::prepare_photo(path, None, photo::Fit::Auto, framing, cfg.resolution, device)?;
+    let started = start_for_photo(g, camera, &photo.rgb, pose, init)?;
     let cfg = InvertConfig { refine_pose: refine.resolve(started.pose_from), ..cfg.clone() };
     let net;
     let perceptual = if cfg.perceptual_weight > 0.0 {
@@ -525,8 +610,8 @@ pub fn features_of_photo(
     } else {
         None
     };
-    let f = invert(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), progress)?.features;
-    Ok((f, started.pose_from))
+    let f = invert_photo(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), progress)?.features;
+    Ok((f, started.pose_from, photo))
 }
 
 /// The features `f` on a turntable of `n` views from `pose` (radians), `(n, 3, res, res)`
@@ -545,7 +630,8 @@ pub fn render_orbit(
     Ok(Tensor::cat(&views, 0))
 }
 
-/// The loss curve of an inversion: the total, and its terms (MSE, perceptual, priors), on
+/// The loss curve of an inversion: the total, and its terms (MSE, perceptual, silhouette,
+/// priors), on
 /// log axes.
 pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
     use crate::plot::{Panel, Series};
@@ -560,6 +646,7 @@ pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
             series: vec![
                 series("mse", &|l| l.mse),
                 series("perceptual", &|l| l.perceptual),
+                series("silhouette", &|l| l.silhouette),
                 series("prior", &|l| l.prior),
             ],
             log_y: true,

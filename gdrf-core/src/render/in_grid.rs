@@ -100,7 +100,9 @@ impl<'r, 'a, F: RadianceField> Grids<'r, 'a, F> {
         })
     }
 
-    /// The pixels `(1, R, 3)` of one image's `rays` rendered only in the occupied cells of
+    /// The pixels `(1, R, 3)` of one image's `rays` and the object's share of each `(1, R,
+    /// 1)` ([`crate::render::RenderedRays::object_share`]: 0 for a ray shaded from its far
+    /// end), rendered only in the occupied cells of
     /// `grid` (a [`GridConfig::cells_only`] grid), with gradients through the rays of
     /// `subset` (all when `None`): a ray that meets an occupied cell is sampled only in the
     /// occupied cells along it ([`crate::render::sampler::OccupiedCells`]), empty stretches
@@ -115,7 +117,7 @@ impl<'r, 'a, F: RadianceField> Grids<'r, 'a, F> {
         grid: &OccupancyGrid,
         noise: &Noise,
         subset: Option<&Tensor>,
-    ) -> Result<Tensor> {
+    ) -> Result<(Tensor, Tensor)> {
         if !grid.cfg.cells_only {
             return Err(Error::Invalid("render_in_cells needs a grid that samples only its occupied cells".into()));
         }
@@ -127,23 +129,30 @@ impl<'r, 'a, F: RadianceField> Grids<'r, 'a, F> {
         };
         let (kind, device) = (rays.dirs.kind(), rays.dirs.device());
         let mut pixel = Tensor::zeros([1, r, 3], (kind, device));
+        let mut share = Tensor::zeros([1, r, 1], (kind, device));
         for (meets, with_grad) in [(true, true), (true, false), (false, true), (false, false)] {
             let idx = hit.eq(meets as i64).logical_and(&traced.eq(with_grad as i64)).nonzero().view([-1]);
             if idx.size()[0] == 0 {
                 continue;
             }
-            let render = || -> Result<Tensor> {
+            let render = || -> Result<(Tensor, Tensor)> {
                 Ok(if meets {
                     let sub = within(rays, &occupied, &idx, true);
-                    self.renderer.render_rays(latents, &sub, &noise.select_rays(&idx))?.pixel
+                    let out = self.renderer.render_rays(latents, &sub, &noise.select_rays(&idx))?;
+                    let s = out.object_share();
+                    (out.pixel, s)
                 } else {
-                    self.render_far_end(latents, &rays.select_rays(&idx)).pixel
+                    // Its one sample stands for the background: no object.
+                    let px = self.render_far_end(latents, &rays.select_rays(&idx)).pixel;
+                    let s = px.zeros_like().narrow(2, 0, 1);
+                    (px, s)
                 })
             };
-            let part = if with_grad { render()? } else { tch::no_grad(render)? };
-            pixel = pixel.index_copy(1, &idx, &part.to_kind(kind));
+            let (px, s) = if with_grad { render()? } else { tch::no_grad(render)? };
+            pixel = pixel.index_copy(1, &idx, &px.to_kind(kind));
+            share = share.index_copy(1, &idx, &s.to_kind(kind));
         }
-        Ok(pixel)
+        Ok((pixel, share))
     }
 
     /// Where one image's rays `(1, R, 3)` may hold density by `grid`: their occupied bins

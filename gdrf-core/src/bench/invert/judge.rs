@@ -2,12 +2,15 @@
 //! inversion on them.
 use crate::camera::{Poses, Rays};
 use crate::config::RenderConfig;
-use crate::data::synth::render_object;
+use crate::data::synth::restyle::Restyle;
+use crate::data::synth::{render_object, SynthOptions};
 use crate::data::{Metadata, Split};
 use crate::edit::Features;
+use crate::error::Context;
 use crate::eval::fidelity::psnr;
 use crate::eval::probe::{structure_classes, Probe};
-use crate::invert::photo::{load_photo, Fit};
+use crate::invert::framing::Framing;
+use crate::invert::photo::{load_photo, prepare_photo, Fit};
 use crate::invert::{render_views, Perceptual};
 use crate::pretrained::effnet::EfficientNetLite0;
 use crate::render::{Noise, Renderer};
@@ -19,6 +22,12 @@ use super::Options;
 pub(super) struct Case {
     pub(super) file: String,
     pub(super) photo: Tensor,
+    /// `(1, 1, R, R)` the photo's silhouette (its alpha, or its background's), for the
+    /// silhouette term.
+    pub(super) silhouette: Option<Tensor>,
+    /// The photo as it is (`load_photo`, centre-cropped, no background found, no framing):
+    /// what `gdrf-invert` compared before it framed photos.
+    pub(super) as_is: Tensor,
     pub(super) pose: (f64, f64),
     /// `(V, 3, R, R)` ground truth, its alpha `(V, 1, R, R)` and the poses.
     pub(super) novel: Tensor,
@@ -75,8 +84,7 @@ impl Judge<'_> {
         let rays = Rays::from_poses(&Poses::from_angles(poses, kind, device), self.res, self.cam.fov_deg);
         let noise = Noise::midpoints(k, self.res * self.res, self.samples as i64, device);
         let out = tch::no_grad(|| r.render_rays(&lat, &rays, &noise))?;
-        let s = out.weights.size()[2];
-        let front = out.weights.narrow(2, 0, s - 1).sum_dim_intlist(2, false, Kind::Float);
+        let front = out.object_share().to_kind(Kind::Float);
         Ok(front.view([k, self.res, self.res, 1]).permute([0, 3, 1, 2]))
     }
 
@@ -114,7 +122,22 @@ pub(super) struct Cell {
     pub(super) yaw_err: f64,
 }
 
-pub(super) fn load_cases(a: &Options, res: i64, dev: tch::Device, perceptual: &Perceptual) -> Result<Vec<Case>> {
+/// The folder of the restyled photos of output stem `out` (`--restyle`).
+pub(super) fn photos_dir(out: &std::path::Path) -> std::path::PathBuf {
+    let mut name = out.file_name().unwrap_or_default().to_os_string();
+    name.push("-photos");
+    out.with_file_name(name)
+}
+
+/// The held-out objects, their photos (the dataset's, or restyled with `--restyle`)
+/// prepared as `gdrf-invert PHOTO` prepares them (their silhouette, framed by `framing`).
+pub(super) fn load_cases(
+    a: &Options,
+    res: i64,
+    dev: tch::Device,
+    perceptual: &Perceptual,
+    framing: Option<&Framing>,
+) -> Result<Vec<Case>> {
     let meta = Metadata::load(&a.dataset)?;
     let mut opts = meta.options.clone();
     opts.resolution = res as usize;
@@ -128,9 +151,27 @@ pub(super) fn load_cases(a: &Options, res: i64, dev: tch::Device, perceptual: &P
             a.images
         )));
     }
+    if a.restyle.is_some() {
+        let dir = photos_dir(&a.out);
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     let mut cases = Vec::new();
     for r in &held {
-        let photo = load_photo(&a.dataset.join(&r.file), None, Fit::Crop, res, dev)?;
+        let file = match a.restyle {
+            None => a.dataset.join(&r.file),
+            Some(seed) => {
+                // The object at the photo's pose, rendered at 128² and restyled.
+                let big = SynthOptions { resolution: 128, supersample: 2, ..opts.clone() };
+                let rendered = render_object(&r.shape, &r.appearance, r.pitch, r.yaw, &big)?;
+                let stem = std::path::Path::new(&r.file).file_stem().unwrap_or_default().to_string_lossy().into_owned();
+                let path = photos_dir(&a.out).join(format!("{stem}.jpg"));
+                let index = stem.parse::<u64>().unwrap_or(0);
+                crate::paths::write_atomic(&path, &Restyle::draw(seed, index).photo(&rendered)?)?;
+                path
+            }
+        };
+        let photo = prepare_photo(&file, None, Fit::Auto, framing, res, dev)?;
+        let as_is = load_photo(&file, None, Fit::Crop, res, dev)?;
         let novel_poses: Vec<(f64, f64)> =
             (1..=a.views).map(|k| (r.pitch, r.yaw + std::f64::consts::TAU * k as f64 / (a.views + 1) as f64)).collect();
         let (mut novel, mut alpha) = (Vec::new(), Vec::new());
@@ -145,7 +186,9 @@ pub(super) fn load_cases(a: &Options, res: i64, dev: tch::Device, perceptual: &P
             .collect::<Result<Vec<_>>>()?;
         cases.push(Case {
             file: r.file.clone(),
-            photo,
+            photo: photo.rgb,
+            silhouette: photo.silhouette,
+            as_is,
             pose: (r.pitch, r.yaw),
             novel,
             alpha: Tensor::cat(&alpha, 0).to_device(dev),

@@ -13,6 +13,7 @@ use crate::edit::generator_id;
 use crate::error::Context;
 use crate::eval::probe::Probe;
 use crate::invert::choice::{self, InitChoice};
+use crate::invert::framing::Framing;
 use crate::invert::{load_effnet, start_for_photo, InvertConfig, Inverter, Perceptual};
 use crate::pretrained::effnet::EfficientNetLite0;
 use crate::pretrained::lpips::{Lpips, LpipsNet};
@@ -73,6 +74,17 @@ pub struct Options {
     pub resolution: Option<i64>,
     #[arg(long)]
     pub samples: Option<usize>,
+    /// Weight of the silhouette term of every method but the paper's (default:
+    /// gdrf-invert's; 0 = off). The photos' silhouettes are their alpha.
+    #[arg(long)]
+    pub silhouette_weight: Option<f64>,
+    /// Photos restyled out of the house style with this seed instead of the dataset's own
+    /// (data::synth::restyle: another frame, scale and place, a background that is not
+    /// white, no alpha, JPEG), written to STEM-photos/; adds the row "gdrf-invert, the
+    /// photo as it is" (centre-cropped, no silhouette, no framing). Choose on one seed,
+    /// report on another.
+    #[arg(long, value_name = "SEED")]
+    pub restyle: Option<u64>,
     /// Also run the variants the defaults were chosen among: the initialiser's pose kept
     /// fixed, and gradients through a quarter of the rays at lr 0.03 (the defaults before
     /// an initialiser shipped).
@@ -123,6 +135,8 @@ struct Method {
     from: From,
     pose: PoseUsed,
     cfg: InvertConfig,
+    /// Inverts the photo as it is ([`Case::as_is`]) instead of the prepared one.
+    as_is: bool,
     /// How many of the objects it runs on (the first ones).
     objects: usize,
 }
@@ -131,7 +145,14 @@ struct Method {
 /// (the initialiser's pose, refined), the paper's 2 000 steps, and with `variants` what
 /// the defaults were chosen among.
 fn methods(a: &Options, defaults: &InvertConfig, with_init: bool) -> Vec<Method> {
-    let m = |name: &str, from, pose, cfg: InvertConfig, objects| Method { name: name.into(), from, pose, cfg, objects };
+    let m = |name: &str, from, pose, cfg: InvertConfig, objects| Method {
+        name: name.into(),
+        from,
+        pose,
+        cfg,
+        as_is: false,
+        objects,
+    };
     let all = a.images;
     let refine = InvertConfig { refine_pose: true, ..defaults.clone() };
     let fixed = InvertConfig { refine_pose: false, ..defaults.clone() };
@@ -140,6 +161,7 @@ fn methods(a: &Options, defaults: &InvertConfig, with_init: bool) -> Vec<Method>
         lr: a.reference_lr,
         ray_fraction: 1.0,
         refine_pose: true,
+        silhouette_weight: 0.0,
         ..defaults.clone()
     };
     let mut v = vec![m("mean code, true pose", From::MeanCode, PoseUsed::True, fixed.clone(), all)];
@@ -152,6 +174,11 @@ fn methods(a: &Options, defaults: &InvertConfig, with_init: bool) -> Vec<Method>
             refine.clone(),
             all,
         ));
+        if a.restyle.is_some() {
+            let plain = InvertConfig { silhouette_weight: 0.0, ..refine.clone() };
+            let name = "gdrf-invert, the photo as it is: centre-cropped, no silhouette";
+            v.push(Method { as_is: true, ..m(name, From::Initialiser, PoseUsed::Estimated, plain, all) });
+        }
         let name = format!("paper: initialiser, its pose refined, {} steps", a.reference_steps);
         v.push(m(&name, From::Initialiser, PoseUsed::Estimated, paper.clone(), a.reference_images.min(all)));
         if a.variants {
@@ -191,6 +218,7 @@ impl Options {
             resolution: self.resolution.unwrap_or(learned.resolution),
             samples: self.samples.unwrap_or(learned.samples),
             steps: self.steps.unwrap_or(learned.steps),
+            silhouette_weight: self.silhouette_weight.unwrap_or(learned.silhouette_weight),
             ..learned
         };
         defaults.validate()?;
@@ -234,7 +262,8 @@ pub fn run(a: &Options) -> Result<Report> {
     };
     // The inversion's own perceptual term is gdrf-invert's default, whatever scores it.
     let loss_term = Perceptual::effnet(&effnet);
-    let cases = load_cases(a, res, dev, &scorer)?;
+    let framing = Framing::beside(&gen_path)?;
+    let cases = load_cases(a, res, dev, &scorer, framing.as_ref())?;
     let probe_path =
         a.probe.clone().unwrap_or_else(|| crate::paths::repo_root().join("models/chairs-probe/probe.safetensors"));
     let probe = Probe::load(&probe_path, dev).with_context(|| format!("loading --probe {}", probe_path.display()))?;
@@ -243,12 +272,13 @@ pub fn run(a: &Options) -> Result<Report> {
         Judge { g, cam: &cam, probe: &probe, effnet: &effnet, perceptual: &scorer, res, samples: defaults.samples };
     let methods = methods(a, &defaults, chosen.init.is_some());
     eprintln!(
-        "benchmarking inversion on {} held-out objects of {} (after --skip {}) at {res}², noise seeds {seeds:?}, {} novel views each; {} methods; {}; device {dev:?}, {threads} threads",
+        "benchmarking inversion on {} held-out objects of {} (after --skip {}) at {res}², noise seeds {seeds:?}, {} novel views each; {} methods; silhouette weight {}; {}; device {dev:?}, {threads} threads",
         cases.len(),
         a.dataset.display(),
         a.skip,
         a.views,
         methods.len(),
+        defaults.silhouette_weight,
         chosen.said
     );
     let total: usize = methods.iter().map(|m| m.cfg.steps * m.objects).sum::<usize>() * seeds.len();
@@ -266,11 +296,16 @@ pub fn run(a: &Options) -> Result<Report> {
             let t0 = std::time::Instant::now();
             let init = (method.from == From::Initialiser).then_some(chosen.init.as_ref()).flatten();
             let known = (method.pose == PoseUsed::True).then_some(case.pose);
-            let started = start_for_photo(g, &cam, &case.photo, known, init)?;
+            let (photo, silhouette) = match method.as_is {
+                true => (&case.as_is, None),
+                false => (&case.photo, case.silhouette.as_ref()),
+            };
+            let started = start_for_photo(g, &cam, photo, known, init)?;
             let start_seconds = t0.elapsed().as_secs_f64();
             for (si, &seed) in seeds.iter().enumerate() {
                 let cfg = InvertConfig { seed, ..method.cfg.clone() };
-                let mut inv = Inverter::new(g, &cam, &case.photo, &started.start, &cfg, Some(&loss_term))?;
+                let mut inv = Inverter::new(g, &cam, photo, &started.start, &cfg, Some(&loss_term))?
+                    .with_silhouette(silhouette)?;
                 let counted = bar.position();
                 let mut seconds = 0.0;
                 for (ci, &cp) in checkpoints.iter().enumerate() {
@@ -289,7 +324,7 @@ pub fn run(a: &Options) -> Result<Report> {
                         yaw_err: angle_deg(at.1, case.pose.1),
                     };
                     let last = ci + 1 == checkpoints.len();
-                    if last && si == 0 && oi < a.figure_objects && method.name.starts_with("gdrf-invert") {
+                    if last && si == 0 && oi < a.figure_objects && method.name.starts_with("gdrf-invert:") {
                         figure_rows.push(figure_row(&judge, &f, case, at)?);
                     }
                 }
@@ -317,6 +352,11 @@ pub fn run(a: &Options) -> Result<Report> {
         resolution: res,
         samples: defaults.samples,
         perceptual: perceptual_name,
+        silhouette_weight: defaults.silhouette_weight,
+        restyle: a.restyle,
+        framing: framing
+            .as_ref()
+            .map(|_| crate::paths::shown(&gen_path.with_file_name(crate::invert::framing::FRAMING_FILE))),
         device: format!("{dev:?}"),
         threads,
         probe: crate::paths::shown(&probe_path),

@@ -25,6 +25,12 @@ pub struct Report {
     pub resolution: i64,
     pub samples: usize,
     pub perceptual: String,
+    /// The silhouette term's weight in every method but the paper's.
+    pub silhouette_weight: f64,
+    /// The seed of the restyled photos (`--restyle`), none for the dataset's own.
+    pub restyle: Option<u64>,
+    /// The framing file the photos were framed by, where there was one.
+    pub framing: Option<String>,
     pub device: String,
     pub threads: usize,
     pub probe: String,

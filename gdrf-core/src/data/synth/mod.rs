@@ -10,6 +10,7 @@ pub mod analytic;
 pub mod chairs;
 pub mod material;
 pub mod render;
+pub mod restyle;
 pub mod rng;
 pub mod sdf;
 pub mod tables;

@@ -15,6 +15,8 @@ pub enum Stream {
     Appearance = 2,
     Pose = 3,
     Split = 4,
+    /// The out-of-house-style photos of [`super::restyle`].
+    Restyle = 5,
 }
 
 /// The seed of object `index` in a dataset generated with `seed`.

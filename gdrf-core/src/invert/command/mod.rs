@@ -1,9 +1,12 @@
 //! The commands of gdrf-invert: `gdrf-invert PHOTO` (a photo into shape and appearance
-//! features, [`run`]) and `gdrf-invert train-init` (the initialiser, [`train_init`]),
+//! features, [`run`]), `gdrf-invert train-init` (the initialiser, [`train_init`]) and
+//! `gdrf-invert framing` (where the training images' objects sit, [`framing`]),
 //! their flags and progress bars (the `cli` feature).
+mod framing;
 mod run;
 mod train_init;
 
+pub use framing::{framing, FramingOptions};
 pub use run::{run, Options};
 pub use train_init::{train_init, TrainInitOptions};
 

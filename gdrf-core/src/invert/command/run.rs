@@ -6,10 +6,11 @@ use crate::edit::view::GridFlags;
 use crate::error::Context;
 use crate::eval::fidelity::psnr_all;
 use crate::invert::choice::{self, describe_pose, InitChoice, RefinePose};
-use crate::invert::photo::{load_photo, Fit};
+use crate::invert::framing::{Framing, FRAMING_FILE};
+use crate::invert::photo::{prepare_photo, Fit};
 use crate::invert::{
-    invert, load_effnet, loss_panels, parse_pose_degrees, render_orbit, render_views, start_for_photo, InvertConfig,
-    Perceptual, PhotoStart, PoseFrom, StepLog,
+    invert_photo, load_effnet, loss_panels, parse_pose_degrees, render_orbit, render_views, start_for_photo,
+    InvertConfig, Perceptual, PhotoStart, PoseFrom, StepLog,
 };
 use crate::io::{save_gif, save_png, to_rgb8};
 use crate::plot::draw_panels;
@@ -25,8 +26,9 @@ use super::json;
 /// The flags of `gdrf-invert PHOTO`.
 #[derive(clap::Args)]
 pub struct Options {
-    /// The photo: PNG or JPEG, any size (non-square ones are centre-cropped, or padded
-    /// with --fit pad), RGBA composited on white.
+    /// The photo: PNG or JPEG, any size. Its object is found (from --mask, its alpha
+    /// channel, or a uniform background on its border, which becomes white), and framed as
+    /// the training images frame theirs (see --fit); the first lines say what was done.
     #[arg(required = true)]
     pub photo: Option<PathBuf>,
     /// Generator checkpoint (.safetensors); default: the shipped models/chairs-campaign.
@@ -48,11 +50,17 @@ pub struct Options {
     /// camera stored with the generator, as gdrf-edit's --camera.
     #[arg(long, value_enum)]
     pub camera: Option<CameraPreset>,
-    /// A mask image of the photo's size: black pixels become background (white).
+    /// A mask image of the photo's size: white pixels are the object, black ones become
+    /// background (white). It overrides the alpha channel and the background found on the
+    /// border, for the framing and the silhouette.
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
-    /// How a non-square photo becomes square: crop (centre square) or pad (white borders).
-    #[arg(long, default_value = "crop")]
+    /// How the photo becomes the square image compared with renders: auto (the object
+    /// moved and scaled, by cropping or padding, to the nearest placement that the
+    /// training images' objects have, per framing.json beside the generator; a photo
+    /// already so framed, or without a silhouette, is centre-cropped), crop (the centred
+    /// square) or pad (white borders to a square).
+    #[arg(long, default_value = "auto")]
     pub fit: Fit,
     /// Optimisation steps at most. `--steps 2000` is the paper's setting: 2 000 Adam steps
     /// of w_s, γ_a and β_a (and of the pose, when it was estimated) through all rays at lr
@@ -86,6 +94,10 @@ pub struct Options {
     pub mse_weight: f64,
     #[arg(long, default_value_t = InvertConfig::default().perceptual_weight)]
     pub perceptual_weight: f64,
+    /// Weight of the silhouette term, mean (opacity − silhouette)², where the photo has a
+    /// silhouette (0 = off, the paper's optimisation).
+    #[arg(long, default_value_t = InvertConfig::default().silhouette_weight)]
+    pub silhouette_weight: f64,
     #[arg(long, default_value_t = InvertConfig::default().prior_shape)]
     pub prior_shape: f64,
     #[arg(long, default_value_t = InvertConfig::default().prior_appearance)]
@@ -182,13 +194,30 @@ pub fn run(a: &Options) -> Result<()> {
     let g = &m.generator;
     let id = generator_id(&m.vs, g);
     // Read the photo before anything is written, so a bad one leaves no folder behind.
-    let photo = load_photo(&photo_path, a.mask.as_deref(), a.fit, resolution, dev)?;
+    let framing = Framing::beside(&gen_path)?;
+    let prepared = prepare_photo(&photo_path, a.mask.as_deref(), a.fit, framing.as_ref(), resolution, dev)?;
+    let photo = prepared.rgb.shallow_clone();
     let chosen = choice::open(&a.init.clone().unwrap_or_default(), "--init", &gen_path, &id, dev)?;
     crate::io::output_dir(&a.out, a.force, "--out")?;
 
     let PhotoStart { start, pose_from, predicted_pose } = start_for_photo(g, &cam, &photo, pose, chosen.init.as_ref())?;
     let pose = start.pose;
     let cfg = InvertConfig { refine_pose: a.refine_pose.resolve(pose_from), ..cfg };
+    eprintln!("{}", prepared.describe());
+    if framing.is_none() && a.fit == Fit::Auto && prepared.object.is_some() {
+        eprintln!(
+            "warning: no {FRAMING_FILE} beside {}, so the photo is centre-cropped, not framed (gdrf-invert framing --dataset DIR writes one)",
+            gen_path.display()
+        );
+    }
+    for w in &prepared.warnings {
+        eprintln!("warning: {w}");
+    }
+    let silhouette_said = match (&prepared.silhouette, cfg.silhouette_weight > 0.0) {
+        (Some(_), true) => format!("silhouette term weight {}", cfg.silhouette_weight),
+        (Some(_), false) => "silhouette term off".to_string(),
+        (None, _) => "no silhouette term".to_string(),
+    };
     eprintln!("{}", chosen.said);
     eprintln!("{}", describe_pose(pose, pose_from, false));
     if let (Some(p), PoseFrom::Given) = (predicted_pose, pose_from) {
@@ -206,7 +235,7 @@ pub fn run(a: &Options) -> Result<()> {
         ),
     };
     eprintln!(
-        "inverting {} at {}²{said} with {} + {} samples per ray{grid}, {} steps at most, perceptual term: {perc_name}; device {dev:?}, {threads} threads",
+        "inverting {} at {}²{said} with {} + {} samples per ray{grid}, {} steps at most, perceptual term: {perc_name}, {silhouette_said}; device {dev:?}, {threads} threads",
         photo_path.display(),
         resolution,
         samples,
@@ -215,7 +244,7 @@ pub fn run(a: &Options) -> Result<()> {
     );
     let bar = progress::bar(cfg.steps as u64, "steps", a.quiet);
     bar.set_prefix("inverting");
-    let inv = invert(g, &cam, &photo, &start, &cfg, perc.as_ref(), &mut |l: &StepLog| {
+    let inv = invert_photo(g, &cam, &prepared, &start, &cfg, perc.as_ref(), &mut |l: &StepLog| {
         bar.set_position(l.step as u64 + 1);
         bar.set_message(format!("loss {:.4} (mse {:.4}, perceptual {:.4})", l.loss, l.mse, l.perceptual));
     })?;
@@ -233,6 +262,15 @@ pub fn run(a: &Options) -> Result<()> {
     let psnr = write_images(a, g, &cam, &inv, &start, (start_pose, pose), &photo, view_res, samples)?;
     let report = serde_json::json!({
         "photo": photo_path.display().to_string(),
+        "framing": {
+            "silhouette_from": prepared.from,
+            "photo_size": [prepared.size.0, prepared.size.1],
+            "object_box": prepared.object,
+            "window": prepared.window,
+            "reframed": prepared.reframed,
+            "framing_file": framing.as_ref().map(|_| crate::paths::shown(&gen_path.with_file_name(FRAMING_FILE))),
+            "warnings": prepared.warnings,
+        },
         "init": chosen.path.as_deref().map(crate::paths::shown),
         "pose_from": pose_from.name(),
         "predicted_pose_deg": predicted_pose.map(|p| [p.0.to_degrees(), p.1.to_degrees()]),
@@ -280,6 +318,7 @@ fn settings(a: &Options, header: &crate::checkpoint::Header) -> Result<(InvertCo
         samples,
         mse_weight: a.mse_weight,
         perceptual_weight: if a.perceptual == "none" { 0.0 } else { a.perceptual_weight },
+        silhouette_weight: a.silhouette_weight,
         prior_shape: a.prior_shape,
         prior_appearance: a.prior_appearance,
         ray_fraction: a.ray_fraction,
