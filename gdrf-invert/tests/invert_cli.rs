@@ -196,6 +196,28 @@ fn a_photo_is_framed_and_its_silhouette_is_matched() {
 }
 
 #[test]
+fn framing_measures_the_training_split_beside_the_generator() {
+    let tmp = TempDir::new("invert-framing").unwrap();
+    let data = bench_dataset(&tmp);
+    let gen = tmp.path("model/generator.safetensors");
+    std::fs::create_dir_all(gen.parent().unwrap()).unwrap();
+    std::fs::copy(gdrf_core::paths::shipped_generator(), &gen).unwrap();
+    let g = gen.to_str().unwrap();
+    let said = ok(&["framing", "--dataset", data.to_str().unwrap(), "--generator", g, "--quiet"]);
+    let meta = gdrf_core::data::Metadata::load(&data).unwrap();
+    let train = meta.images.iter().filter(|r| r.split == gdrf_core::data::Split::Train).count();
+    assert!(said.starts_with(&format!("{train} images:")), "{said}");
+    let f = gdrf_core::invert::framing::Framing::beside(&gen).unwrap().expect("framing.json beside the generator");
+    assert_eq!(f.images, train);
+    assert!(0.0 < f.size[0] && f.size[0] <= f.size[1] && f.size[1] <= 1.0, "{f:?}");
+    // A folder of opaque images has nothing to measure, and says so.
+    let flat = tmp.path("flat");
+    std::fs::create_dir_all(&flat).unwrap();
+    image::RgbImage::from_pixel(8, 8, image::Rgb([9, 9, 9])).save(flat.join("a.png")).unwrap();
+    fails(&["framing", "--dataset", flat.to_str().unwrap(), "--generator", g], &["have no alpha", "flat"]);
+}
+
+#[test]
 fn a_photo_inverts_and_bad_inputs_are_named() {
     let tmp = TempDir::new("invert-cli").unwrap();
     let photo = photo_in(&tmp);
