@@ -173,8 +173,8 @@ fn random_unit(rng: &mut Rng, p_axis: f64) -> [f32; 3] {
     }
 }
 
-/// HSV (hue wraps) → sRGB.
-fn hsv(h: f32, s: f32, v: f32) -> [f32; 3] {
+/// HSV (hue in turns, wrapping) → sRGB in [0, 1].
+pub(crate) fn hsv(h: f32, s: f32, v: f32) -> [f32; 3] {
     let h = (h - h.floor()) * 6.0;
     let s = s.clamp(0.0, 1.0);
     let c = v * s;

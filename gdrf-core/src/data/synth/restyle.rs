@@ -122,17 +122,7 @@ fn bilinear(r: &Rendered, u: f64, v: f64) -> ([f32; 3], f32) {
 
 /// sRGB bytes of hue `h` in [0, 6), saturation and value in [0, 1].
 fn hsv_bytes(h: f64, s: f64, v: f64) -> [u8; 3] {
-    let c = v * s;
-    let x = c * (1.0 - ((h % 2.0) - 1.0).abs());
-    let (r, g, b) = match h as u32 {
-        0 => (c, x, 0.0),
-        1 => (x, c, 0.0),
-        2 => (0.0, c, x),
-        3 => (0.0, x, c),
-        4 => (x, 0.0, c),
-        _ => (c, 0.0, x),
-    };
-    [r, g, b].map(|t| ((t + v - c) * 255.0).round() as u8)
+    super::material::hsv((h / 6.0) as f32, s as f32, v as f32).map(|c| (c * 255.0).round() as u8)
 }
 
 #[cfg(test)]
