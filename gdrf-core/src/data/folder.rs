@@ -53,7 +53,7 @@ pub fn object_box(alpha: &[f32], w: usize, h: usize) -> Option<ObjectBox> {
             }
         }
     }
-    (x0 != usize::MAX).then(|| [x0 as f64, y0 as f64, x1 as f64, y1 as f64])
+    (x0 != usize::MAX).then_some([x0 as f64, y0 as f64, x1 as f64, y1 as f64])
 }
 
 /// Decodes `path` and returns its pixels as `4 × res × res` bytes (channel-major, rows
