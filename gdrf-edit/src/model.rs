@@ -149,6 +149,19 @@ pub fn invert_photo(
         }
         (None, init) => choice::open(init, "--photo-init", Path::new("random"), &model.id, model.device)?,
     };
+    let photo = gdrf_core::invert::photo::prepare_photo(
+        p,
+        None,
+        gdrf_core::invert::photo::Fit::Auto,
+        ph.framing.as_ref(),
+        ph.cfg.resolution,
+        model.device,
+    )
+    .with_context(|| format!("{flag} {}", p.display()))?;
+    eprintln!("{flag}: {}", photo.describe());
+    for w in &photo.warnings {
+        eprintln!("{flag}: warning: {w}");
+    }
     eprintln!(
         "{flag}: inverting {} ({} steps at {}² with {} + {} samples per ray); {}",
         p.display(),
@@ -158,11 +171,10 @@ pub fn invert_photo(
         ph.cfg.samples,
         chosen.said
     );
-    let (f, from, photo) = gdrf_core::invert::features_of_photo(
+    let (f, from) = gdrf_core::invert::features_of_photo(
         &model.generator,
         &model.camera,
-        p,
-        ph.framing.as_ref(),
+        &photo,
         ph.pose,
         chosen.init.as_ref(),
         RefinePose::Auto,
@@ -170,10 +182,6 @@ pub fn invert_photo(
         progress,
     )
     .with_context(|| format!("{flag} {}", p.display()))?;
-    eprintln!("{flag}: {}", photo.describe());
-    for w in &photo.warnings {
-        eprintln!("{flag}: warning: {w}");
-    }
     if let Some(pose) = f.pose {
         eprintln!("{flag}: {}", choice::describe_pose(pose, from, RefinePose::Auto.resolve(from)));
     }

@@ -580,27 +580,24 @@ pub fn start_for_photo(
     Ok(PhotoStart { start, pose_from: from, predicted_pose })
 }
 
-/// A photo file as an editing source: prepared as `gdrf-invert PHOTO` prepares it
-/// ([`photo::prepare_photo`]: its silhouette found, framed by `framing` where given),
-/// inverted with `cfg` from [`start_for_photo`]'s start with `init`, the pose refined as
-/// `refine` says, with the EfficientNet-Lite0 perceptual distance when
-/// `cfg.perceptual_weight` is not 0 and the photo's silhouette when it has one, telling
-/// `progress` each optimisation step. Returns the features, where the pose came from and
-/// the prepared photo (its [`photo::Photo::describe`] and warnings say what was done).
+/// A photo as an editing source, prepared by [`photo::prepare_photo`] (its silhouette found,
+/// framed as the training images are): inverted with `cfg` from [`start_for_photo`]'s start
+/// with `init`, the pose refined as `refine` says, with the EfficientNet-Lite0 perceptual
+/// distance when `cfg.perceptual_weight` is not 0 and the photo's silhouette when it has
+/// one, telling `progress` each optimisation step. Returns the features and where the pose
+/// came from.
 #[allow(clippy::too_many_arguments)]
 pub fn features_of_photo(
     g: &Generator,
     camera: &CameraConfig,
-    path: &std::path::Path,
-    framing: Option<&framing::Framing>,
+    photo: &photo::Photo,
     pose: Option<(f64, f64)>,
     init: Option<&init::Initialiser>,
     refine: choice::RefinePose,
     cfg: &InvertConfig,
     progress: &mut dyn FnMut(&StepLog),
-) -> Result<(Features, PoseFrom, photo::Photo)> {
+) -> Result<(Features, PoseFrom)> {
     let (_, device) = g.kind_device();
-    let photo = photo::prepare_photo(path, None, photo::Fit::Auto, framing, cfg.resolution, device)?;
     let started = start_for_photo(g, camera, &photo.rgb, pose, init)?;
     let cfg = InvertConfig { refine_pose: refine.resolve(started.pose_from), ..cfg.clone() };
     let net;
@@ -610,8 +607,8 @@ pub fn features_of_photo(
     } else {
         None
     };
-    let f = invert_photo(g, camera, &photo, &started.start, &cfg, perceptual.as_ref(), progress)?.features;
-    Ok((f, started.pose_from, photo))
+    let f = invert_photo(g, camera, photo, &started.start, &cfg, perceptual.as_ref(), progress)?.features;
+    Ok((f, started.pose_from))
 }
 
 /// The features `f` on a turntable of `n` views from `pose` (radians), `(n, 3, res, res)`
