@@ -132,9 +132,14 @@ impl Framing {
         })
     }
 
-    /// The framing beside `generator` ([`FRAMING_FILE`]), `None` where there is none.
+    /// The framing file of `generator`: [`FRAMING_FILE`] beside it.
+    pub fn file_beside(generator: &Path) -> std::path::PathBuf {
+        generator.with_file_name(FRAMING_FILE)
+    }
+
+    /// The framing beside `generator` ([`Framing::file_beside`]), `None` where there is none.
     pub fn beside(generator: &Path) -> crate::Result<Option<Self>> {
-        let p = generator.with_file_name(FRAMING_FILE);
+        let p = Self::file_beside(generator);
         if !p.is_file() {
             return Ok(None);
         }

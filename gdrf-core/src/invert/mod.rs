@@ -244,10 +244,7 @@ pub fn render_with_opacity(
 /// The silhouette term: mean over pixels of (opacity − silhouette)², in float32 or wider,
 /// of `opacity` and `silhouette` of one shape (opacities of any precision).
 pub fn silhouette_loss(opacity: &Tensor, silhouette: &Tensor) -> Tensor {
-    let o = match opacity.kind() {
-        Kind::Half | Kind::BFloat16 => opacity.to_kind(Kind::Float),
-        _ => opacity.shallow_clone(),
-    };
+    let o = crate::render::wide(opacity);
     let kind = o.kind();
     (o - silhouette.to_kind(kind)).square().mean(kind)
 }
@@ -628,8 +625,7 @@ pub fn render_orbit(
 }
 
 /// The loss curve of an inversion: the total, and its terms (MSE, perceptual, silhouette,
-/// priors), on
-/// log axes.
+/// priors), on log axes.
 pub fn loss_panels(history: &[StepLog]) -> Vec<crate::plot::Panel> {
     use crate::plot::{Panel, Series};
     let series = |name: &str, f: &dyn Fn(&StepLog) -> f64| Series {

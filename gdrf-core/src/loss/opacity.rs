@@ -1,5 +1,5 @@
 //! The opacity term: each generated ray is asked to be object or background.
-use tch::{Kind, Tensor};
+use tch::Tensor;
 
 /// Opacities are clamped to [ε, 1 − ε] before the logarithms, so that a ray that is exactly
 /// empty or exactly opaque gives a finite value and gradient (the term's slope there is at
@@ -11,11 +11,7 @@ pub const OPACITY_EPS: f64 = 1e-6;
 /// It is ln 2 at α = ½ and 0 at α = 0 or 1 (up to [`OPACITY_EPS`]); its gradient pushes
 /// each α away from ½, toward the nearer end.
 pub fn opacity_entropy(alpha: &Tensor) -> Tensor {
-    let a = match alpha.kind() {
-        Kind::Half | Kind::BFloat16 => alpha.to_kind(Kind::Float),
-        _ => alpha.shallow_clone(),
-    };
-    let a = a.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS);
+    let a = crate::render::wide(alpha).clamp(OPACITY_EPS, 1.0 - OPACITY_EPS);
     let b = a.neg() + 1.0;
     let h = -(&a * a.log()) - &b * b.log();
     h.mean(h.kind())
@@ -24,6 +20,7 @@ pub fn opacity_entropy(alpha: &Tensor) -> Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::Kind;
 
     #[test]
     fn entropy_is_ln2_at_a_half_and_zero_at_the_ends() {

@@ -42,7 +42,7 @@ pub struct Composite {
 }
 
 /// Integration needs at least float32: 1e10 overflows half precision.
-fn wide(t: &Tensor) -> Tensor {
+pub(crate) fn wide(t: &Tensor) -> Tensor {
     match t.kind() {
         Kind::Half | Kind::BFloat16 => t.to_kind(Kind::Float),
         _ => t.shallow_clone(),

@@ -144,7 +144,7 @@ impl<'r, 'a, F: RadianceField> Grids<'r, 'a, F> {
                 } else {
                     // Its one sample stands for the background: no object.
                     let px = self.render_far_end(latents, &rays.select_rays(&idx)).pixel;
-                    let s = px.zeros_like().narrow(2, 0, 1);
+                    let s = px.narrow(2, 0, 1).zeros_like();
                     (px, s)
                 })
             };

@@ -12,7 +12,7 @@ pub mod sampler;
 pub mod setup;
 pub mod staged;
 
-pub(crate) use composite::{background_share, on_background};
+pub(crate) use composite::{background_share, on_background, wide};
 pub use composite::{composite, weights_from_density, Composite, CompositeOptions};
 pub use in_grid::Grids;
 pub use occupancy::{camera_half_extent, GridChoice, GridConfig, OccupancyGrid, AUTO_GRID_SAMPLES, COARSEST};

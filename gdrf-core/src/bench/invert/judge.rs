@@ -25,9 +25,9 @@ pub(super) struct Case {
     /// `(1, 1, R, R)` the photo's silhouette (its alpha, or its background's), for the
     /// silhouette term.
     pub(super) silhouette: Option<Tensor>,
-    /// The photo as it is (`load_photo`, centre-cropped, no background found, no framing):
-    /// what `gdrf-invert` compared before it framed photos.
-    pub(super) as_is: Tensor,
+    /// With `--restyle`, the photo as it is (`load_photo`, centre-cropped, no background
+    /// found, no framing): what `gdrf-invert` compared before it framed photos.
+    pub(super) as_is: Option<Tensor>,
     pub(super) pose: (f64, f64),
     /// `(V, 3, R, R)` ground truth, its alpha `(V, 1, R, R)` and the poses.
     pub(super) novel: Tensor,
@@ -141,7 +141,9 @@ pub(super) fn load_cases(
     let meta = Metadata::load(&a.dataset)?;
     let mut opts = meta.options.clone();
     opts.resolution = res as usize;
-    let held: Vec<_> = meta.images.iter().filter(|r| r.split == Split::HeldOut).skip(a.skip).take(a.images).collect();
+    // With each image's index in the dataset: the restyled photo's random stream.
+    let held: Vec<_> =
+        meta.images.iter().enumerate().filter(|(_, r)| r.split == Split::HeldOut).skip(a.skip).take(a.images).collect();
     if held.len() < a.images {
         return Err(Error::Invalid(format!(
             "{} has {} held-out images after --skip {}, --images asks for {}",
@@ -156,22 +158,21 @@ pub(super) fn load_cases(
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let mut cases = Vec::new();
-    for r in &held {
-        let file = match a.restyle {
-            None => a.dataset.join(&r.file),
+    for &(index, r) in &held {
+        let (file, restyled) = match a.restyle {
+            None => (a.dataset.join(&r.file), false),
             Some(seed) => {
                 // The object at the photo's pose, rendered at 128² and restyled.
                 let big = SynthOptions { resolution: 128, supersample: 2, ..opts.clone() };
                 let rendered = render_object(&r.shape, &r.appearance, r.pitch, r.yaw, &big)?;
                 let stem = std::path::Path::new(&r.file).file_stem().unwrap_or_default().to_string_lossy().into_owned();
                 let path = photos_dir(&a.out).join(format!("{stem}.jpg"));
-                let index = stem.parse::<u64>().unwrap_or(0);
-                crate::paths::write_atomic(&path, &Restyle::draw(seed, index).photo(&rendered)?)?;
-                path
+                crate::paths::write_atomic(&path, &Restyle::draw(seed, index as u64).photo(&rendered)?)?;
+                (path, true)
             }
         };
         let photo = prepare_photo(&file, None, Fit::Auto, framing, res, dev)?;
-        let as_is = load_photo(&file, None, Fit::Crop, res, dev)?;
+        let as_is = restyled.then(|| load_photo(&file, None, Fit::Crop, res, dev)).transpose()?;
         let novel_poses: Vec<(f64, f64)> =
             (1..=a.views).map(|k| (r.pitch, r.yaw + std::f64::consts::TAU * k as f64 / (a.views + 1) as f64)).collect();
         let (mut novel, mut alpha) = (Vec::new(), Vec::new());

@@ -296,9 +296,9 @@ pub fn run(a: &Options) -> Result<Report> {
             let t0 = std::time::Instant::now();
             let init = (method.from == From::Initialiser).then_some(chosen.init.as_ref()).flatten();
             let known = (method.pose == PoseUsed::True).then_some(case.pose);
-            let (photo, silhouette) = match method.as_is {
-                true => (&case.as_is, None),
-                false => (&case.photo, case.silhouette.as_ref()),
+            let (photo, silhouette) = match (&case.as_is, method.as_is) {
+                (Some(as_is), true) => (as_is, None),
+                _ => (&case.photo, case.silhouette.as_ref()),
             };
             let started = start_for_photo(g, &cam, photo, known, init)?;
             let start_seconds = t0.elapsed().as_secs_f64();
@@ -354,9 +354,7 @@ pub fn run(a: &Options) -> Result<Report> {
         perceptual: perceptual_name,
         silhouette_weight: defaults.silhouette_weight,
         restyle: a.restyle,
-        framing: framing
-            .as_ref()
-            .map(|_| crate::paths::shown(&gen_path.with_file_name(crate::invert::framing::FRAMING_FILE))),
+        framing: framing.as_ref().map(|_| crate::paths::shown(&Framing::file_beside(&gen_path))),
         device: format!("{dev:?}"),
         threads,
         probe: crate::paths::shown(&probe_path),

@@ -1,7 +1,7 @@
 //! `gdrf-invert framing`: where the objects sit in a dataset's images, written beside a
 //! generator as `framing.json` so that `gdrf-invert PHOTO` frames photos the same way.
 use crate::data::{folder, Metadata, Split};
-use crate::invert::framing::{Framing, FRAMING_FILE, FRAMING_PERCENTILES};
+use crate::invert::framing::{Framing, FRAMING_PERCENTILES};
 use crate::{progress, Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -57,7 +57,7 @@ pub fn framing(a: &FramingOptions) -> Result<()> {
         )));
     }
     let f = Framing::measure(planes.iter().map(|(s, a)| (*s, a.as_slice())), &crate::paths::shown(&a.dataset))?;
-    let out = gen.with_file_name(FRAMING_FILE);
+    let out = Framing::file_beside(&gen);
     let text = serde_json::to_string_pretty(&f).map_err(|e| Error::Invalid(e.to_string()))?;
     crate::paths::write_atomic(&out, (text + "\n").as_bytes())?;
     println!(

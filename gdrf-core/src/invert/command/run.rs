@@ -268,7 +268,7 @@ pub fn run(a: &Options) -> Result<()> {
             "object_box": prepared.object,
             "window": prepared.window,
             "reframed": prepared.reframed,
-            "framing_file": framing.as_ref().map(|_| crate::paths::shown(&gen_path.with_file_name(FRAMING_FILE))),
+            "framing_file": framing.as_ref().map(|_| crate::paths::shown(&Framing::file_beside(&gen_path))),
             "warnings": prepared.warnings,
         },
         "init": chosen.path.as_deref().map(crate::paths::shown),
